@@ -1,0 +1,162 @@
+"""Command line: ``mpipack run | bench | scenes``. Thin dispatch; the work is elsewhere.
+
+Exit codes (the same on every rank):
+    0  done: converged, or ran the requested iterations (stop.eps = 0)
+    1  internal error (a bug: please report it with the traceback)
+    2  bad input (scene, option): one line naming the key
+    3  numerical trouble: NaN, Inf or divergence in the state
+    4  not converged within stop.max_iter
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+
+EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_NUMERICAL, EXIT_NOT_CONVERGED = 0, 1, 2, 3, 4
+
+
+def _parser():
+    p = argparse.ArgumentParser(prog="mpipack", description="Dense sphere packings with the damped Arrow-Hurwicz algorithm, on MPI ranks.")
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("run", help="run a scene (default: the paper's section 4.3 case)")
+    r.add_argument("scene", nargs="?", default=None, help="a TOML file or a built-in scene name (mpipack scenes)")
+    r.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a scene key, e.g. --set method.alpha=0.01 (repeatable)")
+    r.add_argument("--out", default=None, help="output folder (default mpipack-out/<scene>)")
+    r.add_argument("--seed", type=int, default=None, help="random seed of the initial data")
+    r.add_argument("--quiet", action="store_true", help="no progress lines")
+    r.add_argument("--dump", default=None, metavar="FILE.npz",
+                   help="also write the final particles and lambda > 0 pairs, in gid order (gathered on rank 0; for tests and small N)")
+    b = sub.add_parser("bench", help="throughput and memory benchmark in a packed state")
+    b.add_argument("--dim", type=int, action="append", default=None, help="dimension (repeatable; default 2 and 3)")
+    b.add_argument("--n", type=float, action="append", default=None, help="particle count (repeatable; default 1e4 1e5 1e6)")
+    b.add_argument("--iters", type=int, default=None, help="timed iterations (default: about 3 s of work)")
+    b.add_argument("--form", default="S", choices=["S", "NS"])
+    b.add_argument("--json", default=None, help="append result rows to this JSON-lines file")
+    sub.add_parser("scenes", help="list the built-in scenes")
+    return p
+
+
+def _fail(comm, code, message):
+    """Exit every rank with ``code``; rank 0 prints the one-line message."""
+    if comm is None or comm.rank == 0:
+        print(f"mpipack: error: {message}", file=sys.stderr, flush=True)
+    sys.stdout.flush()
+    sys.exit(code)
+
+
+def main(argv=None):
+    args = _parser().parse_args(argv)
+    if args.command == "scenes":
+        from . import config
+        for name in config.builtin_names():
+            print(name)
+        return 0
+    if args.command == "bench":
+        from . import bench
+        return bench.main(args)
+    return run_command(args)
+
+
+def run_command(args):
+    from . import config
+    from .comm import Comm
+    comm = Comm()
+    # every rank validates the same input; the verdict is shared so that all exit together
+    try:
+        scene = config.load(args.scene, args.overrides, args.seed)
+        err = None
+    except config.SceneError as e:
+        scene, err = None, str(e)
+    errs = comm.allgather_object(err)
+    first = next((e for e in errs if e), None)
+    if first:
+        _fail(comm, EXIT_INPUT, first)
+    if scene["n"] < 1:
+        _fail(comm, EXIT_INPUT, "key 'n' must be positive")
+    out = args.out or scene["output"]["dir"] or os.path.join("mpipack-out", scene["name"])
+    try:
+        return _run(comm, scene, out, args)
+    except SystemExit:
+        raise
+    except BaseException:
+        import traceback
+        traceback.print_exc()
+        sys.stderr.flush()
+        if comm.size > 1:
+            comm.abort(EXIT_INTERNAL)
+        return EXIT_INTERNAL
+
+
+def _run(comm, scene, out, args):
+    from . import solver as solver_mod
+    rank0 = comm.rank == 0
+    m = scene["method"]
+    every = scene["output"]["progress_every"]
+    show = rank0 and not args.quiet and every > 0
+    if rank0:
+        os.makedirs(out, exist_ok=True)
+    if show:
+        print(f"mpipack: scene {scene['name']}: {m['name'].upper()}-{m['form']} dim={scene['dim']} "
+              f"N={scene['n']} on {comm.size} rank(s); alpha={m['alpha']:g} beta={m['beta']:g} "
+              f"gamma={m['gamma']:g} c={m['c']:g} eps={scene['stop']['eps']:g}", flush=True)
+        print(f"{'iteration':>10} {'rel.change':>11} {'max overlap':>11} {'contacts':>9} {'it/s':>9}", flush=True)
+    state = {"t": 0.0, "it": 0}
+
+    def progress(fig, elapsed):
+        if not show:
+            return
+        if elapsed - state["t"] >= every:
+            rate = (fig["iteration"] - state["it"]) / max(elapsed - state["t"], 1e-12)
+            state["t"], state["it"] = elapsed, fig["iteration"]
+            print(f"{fig['iteration']:>10d} {fig['relative_change']:>11.3e} {fig['max_overlap']:>11.3e} "
+                  f"{fig['active_pairs']:>9d} {rate:>9.0f}", flush=True)
+
+    t0 = time.perf_counter()
+    try:
+        solver, res = solver_mod.run(scene, comm, on_progress=progress)
+    except solver_mod.NumericalError as e:
+        _fail(comm, EXIT_NUMERICAL, str(e))
+    wall = time.perf_counter() - t0
+    summary = {
+        "scene": scene["name"], "method": m["name"], "form": m["form"], "dim": scene["dim"],
+        "n": scene["n"], "ranks": comm.size, "iterations": res["iterations"],
+        "converged": res["converged"], "wall_seconds": wall,
+        "relative_change": res["relative_change"], "max_overlap": res["max_overlap"],
+        "W": res["W"], "density": res["density"], "density_radius": res["density_radius"],
+        "particle_iterations_per_second": res["particle_iterations_per_second"],
+        "particle_iterations_per_second_per_rank": res["particle_iterations_per_second"] / comm.size,
+        "loop_seconds": res["loop_seconds"], "setup_seconds": res["setup_seconds"],
+        "active_pairs": res["active_pairs"], "rebuilds": res["rebuilds"],
+        "rebalances": res["rebalances"], "far_ghosts": res["far_ghosts"],
+        "parameters": {k: m[k] for k in ("alpha", "beta", "gamma", "c")},
+        "eps": scene["stop"]["eps"], "max_iter": scene["stop"]["max_iter"], "seed": scene["seed"],
+    }
+    if args.dump:
+        data = solver.gather()
+        if rank0:
+            import numpy as np
+            np.savez(args.dump, **data)
+    if rank0:
+        with open(os.path.join(out, "summary.json"), "w") as f:
+            json.dump(summary, f, indent=2)
+            f.write("\n")
+        if not args.quiet:
+            verdict = ("converged" if res["converged"] else
+                       ("ran the requested iterations" if scene["stop"]["eps"] == 0 else "NOT converged"))
+            print(f"mpipack: {verdict} after {res['iterations']} iterations in {wall:.2f} s "
+                  f"({res['particle_iterations_per_second']:.3g} particle-iterations/s)\n"
+                  f"  relative change {res['relative_change']:.3e}, max overlap {res['max_overlap']:.3e} d, "
+                  f"W = {res['W']:.10g}\n"
+                  f"  packing density {res['density']:.4f} in the ball of radius {res['density_radius']:.3g} "
+                  f"(radius of gyration) about the centre of mass\n"
+                  f"  summary: {os.path.join(out, 'summary.json')}", flush=True)
+    if scene["stop"]["eps"] > 0 and not res["converged"]:
+        return EXIT_NOT_CONVERGED
+    return EXIT_OK
+
+
+if __name__ == "__main__":
+    sys.exit(main())

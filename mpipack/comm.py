@@ -1,0 +1,188 @@
+"""Inter-rank communication: moving particle data and reduced numbers. No physics here.
+
+The four verbs (as in LAMMPS' comm_brick):
+
+    exchange   migrate particles (with their pair history) to the rank that owns their position
+    borders    send copies of particles near another rank's box: that rank's ghosts
+    forward    refresh ghost positions from their owners (every iteration)
+    reduce     one fused allreduce of exact sums, integer counts and maxima (every iteration)
+
+A run on one rank never calls MPI in the loop: every verb has a size-1 short cut.
+"""
+
+import numpy as np
+from mpi4py import MPI
+
+_FUSED_OP = None
+
+
+def _fused_op_fn(inbuf, outbuf, datatype):
+    """Combine two fused-reduction buffers: int64 sums first, then int64-ordered maxima.
+
+    Layout: buf[0] = n_sum (the same everywhere), buf[1:1+n_sum] summed, buf[1+n_sum:] max.
+    Maxima are non-negative float64 stored by bit pattern, whose int64 order is their order.
+    """
+    a = np.frombuffer(inbuf, dtype=np.int64)
+    b = np.frombuffer(outbuf, dtype=np.int64)
+    n_sum = int(b[0])
+    b[1:1 + n_sum] += a[1:1 + n_sum]
+    np.maximum(b[1 + n_sum:], a[1 + n_sum:], out=b[1 + n_sum:])
+
+
+def _fused_op():
+    global _FUSED_OP
+    if _FUSED_OP is None:
+        _FUSED_OP = MPI.Op.Create(_fused_op_fn, commute=True)
+    return _FUSED_OP
+
+
+class Comm:
+    """A communicator plus the verbs above. ``rank`` and ``size`` as in MPI."""
+
+    def __init__(self, mpi_comm=None):
+        self.mpi = mpi_comm if mpi_comm is not None else MPI.COMM_WORLD
+        self.rank = self.mpi.Get_rank()
+        self.size = self.mpi.Get_size()
+
+    # ---- reductions ------------------------------------------------------------------------
+    def reduce_fused(self, sums, maxima):
+        """One allreduce: element-wise integer sum of ``sums`` and max of ``maxima``.
+
+        sums: int64 array (any shape, summed exactly); maxima: float64 array of values >= 0
+        (or NaN, which wins). Returns (global_sums, global_maxima), new arrays.
+        """
+        sums = np.ascontiguousarray(sums, dtype=np.int64)
+        maxima = np.ascontiguousarray(maxima, dtype=np.float64)
+        if self.size == 1:
+            return sums.copy(), maxima.copy()
+        n_sum = sums.size
+        buf = np.empty(1 + n_sum + maxima.size, dtype=np.int64)
+        buf[0] = n_sum
+        buf[1:1 + n_sum] = sums.ravel()
+        # NaN must win the max: store it as the largest positive pattern
+        m = np.where(np.isnan(maxima), np.inf, maxima)
+        mbits = m.view(np.int64).copy()
+        mbits[np.isnan(maxima)] = np.iinfo(np.int64).max
+        buf[1 + n_sum:] = mbits
+        out = np.empty_like(buf)
+        self.mpi.Allreduce(buf, out, op=_fused_op())
+        g_sums = out[1:1 + n_sum].reshape(sums.shape)
+        mbits = out[1 + n_sum:].copy()
+        nan = mbits == np.iinfo(np.int64).max
+        mbits[nan] = 0
+        g_max = mbits.view(np.float64).copy()
+        g_max[nan] = np.nan
+        return g_sums, g_max
+
+    def allreduce(self, array, op="sum"):
+        """Element-wise allreduce of a numpy array (sum, min or max); used off the hot path."""
+        array = np.ascontiguousarray(array)
+        if self.size == 1:
+            return array.copy()
+        out = np.empty_like(array)
+        mop = {"sum": MPI.SUM, "min": MPI.MIN, "max": MPI.MAX}[op]
+        self.mpi.Allreduce(array, out, op=mop)
+        return out
+
+    def allgather_object(self, obj):
+        return [obj] if self.size == 1 else self.mpi.allgather(obj)
+
+    def bcast_object(self, obj, root=0):
+        return obj if self.size == 1 else self.mpi.bcast(obj, root=root)
+
+    def barrier(self):
+        if self.size > 1:
+            self.mpi.Barrier()
+
+    def abort(self, code):
+        self.mpi.Abort(code)
+
+    # ---- particle movement -----------------------------------------------------------------
+    def alltoallv(self, arrays, send_counts):
+        """Send rows of each array to ranks: rows of ``arrays[name]`` are grouped by destination,
+        ``send_counts[name][r]`` rows to rank r (name-specific counts allow ragged payloads).
+
+        Returns (received arrays, recv_counts per name), rows grouped by source rank.
+        """
+        names = list(arrays)
+        counts = np.array([send_counts[n] for n in names], dtype=np.int64).T.copy()  # (P, n)
+        recv = np.empty_like(counts)
+        self.mpi.Alltoall(counts, recv)
+        out = {}
+        out_counts = {}
+        for q, name in enumerate(names):
+            a = np.ascontiguousarray(arrays[name])
+            row = int(np.prod(a.shape[1:])) if a.ndim > 1 else 1
+            sc = counts[:, q] * row
+            rc = recv[:, q] * row
+            sd = np.concatenate(([0], np.cumsum(sc)[:-1]))
+            rd = np.concatenate(([0], np.cumsum(rc)[:-1]))
+            r = np.empty((int(recv[:, q].sum()),) + a.shape[1:], dtype=a.dtype)
+            mt = MPI._typedict[a.dtype.char]
+            self.mpi.Alltoallv([a, (sc, sd), mt], [r, (rc, rd), mt])
+            out[name] = r
+            out_counts[name] = recv[:, q].copy()
+        return out, out_counts
+
+
+class GhostPlan:
+    """Who sends which local rows to whom, and where received ghosts go.
+
+    send_ranks[m] gets local rows send_idx[send_offsets[m]:send_offsets[m+1]];
+    recv_ranks[m]'s rows land at ghost rows recv_offsets[m]:recv_offsets[m+1]
+    (counted from the first ghost row, i.e. x[n_local + recv_offsets[m]]).
+    """
+
+    def __init__(self, send_ranks, send_offsets, send_idx, recv_ranks, recv_offsets):
+        self.send_ranks = send_ranks
+        self.send_offsets = send_offsets
+        self.send_idx = send_idx
+        self.recv_ranks = recv_ranks
+        self.recv_offsets = recv_offsets
+        self.n_ghost = int(recv_offsets[-1]) if len(recv_offsets) else 0
+        self._sendbuf = None
+
+    @staticmethod
+    def empty():
+        z = np.zeros(1, dtype=np.int64)
+        return GhostPlan([], z, np.empty(0, dtype=np.int64), [], z)
+
+
+def borders(comm, dest_offsets, dest_idx, fields):
+    """Send copies of local rows to other ranks: the ghost exchange.
+
+    dest_offsets (P+1,), dest_idx: rank r gets local rows dest_idx[dest_offsets[r]:...];
+    fields: dict name -> per-particle array of local rows (e.g. x, gid, diam).
+    Returns (GhostPlan, dict of received ghost arrays in plan order).
+    """
+    P = comm.size
+    counts = np.diff(dest_offsets)
+    arrays = {k: np.ascontiguousarray(v[dest_idx]) for k, v in fields.items()}
+    got, rcounts = comm.alltoallv(arrays, {k: counts for k in fields})
+    rc = rcounts[next(iter(fields))]
+    send_ranks = [r for r in range(P) if counts[r] > 0]
+    send_offsets = np.concatenate(([0], np.cumsum([counts[r] for r in send_ranks]))).astype(np.int64)
+    recv_ranks = [r for r in range(P) if rc[r] > 0]
+    recv_offsets = np.concatenate(([0], np.cumsum([rc[r] for r in recv_ranks]))).astype(np.int64)
+    plan = GhostPlan(send_ranks, send_offsets, np.ascontiguousarray(dest_idx, dtype=np.int64),
+                     recv_ranks, recv_offsets)
+    return plan, got
+
+
+def forward(comm, plan, x, n_local):
+    """Refresh ghost rows x[n_local:] from their owners' local rows (nonblocking point-to-point)."""
+    if comm.size == 1 or (not plan.send_ranks and not plan.recv_ranks):
+        return
+    b = x.shape[1]
+    n_send = plan.send_idx.shape[0]
+    if plan._sendbuf is None or plan._sendbuf.shape != (n_send, b):
+        plan._sendbuf = np.empty((n_send, b))
+    np.take(x, plan.send_idx, axis=0, out=plan._sendbuf)
+    reqs = []
+    for m, r in enumerate(plan.recv_ranks):
+        lo = n_local + plan.recv_offsets[m]
+        hi = n_local + plan.recv_offsets[m + 1]
+        reqs.append(comm.mpi.Irecv(x[lo:hi], source=r, tag=7))
+    for m, r in enumerate(plan.send_ranks):
+        reqs.append(comm.mpi.Isend(plan._sendbuf[plan.send_offsets[m]:plan.send_offsets[m + 1]], dest=r, tag=7))
+    MPI.Request.Waitall(reqs)

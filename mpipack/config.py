@@ -1,0 +1,177 @@
+"""Scenes: TOML files or built-in names, overrides, defaults and validation. No numerics.
+
+A scene is a nested table; every key has a default (``DEFAULTS``) and a check. The result of
+``load`` is a plain, fully populated dict that the rest of the code only reads.
+
+Errors are ``SceneError`` with a one-line message naming the key; the CLI turns them into
+exit code 2 on every rank.
+"""
+
+import copy
+import math
+import tomllib
+from importlib import resources
+from pathlib import Path
+
+METHODS = ("daha", "aha")
+FORMS = ("S", "NS")
+INIT_KINDS = ("gaussian", "lattice")
+
+DEFAULTS = {
+    "name": "scene",
+    "dim": 2,
+    "n": 2000,
+    "seed": 1,
+    "particles": {"diameter": 1.0, "diameter_max": None},
+    "init": {"kind": "gaussian", "sigma": 1.0, "spacing": 1.0, "jitter": 0.0},
+    "method": {"name": "daha", "form": "S", "alpha": 7.8e-3, "beta": 2.8e3, "gamma": None, "c": 2.0},
+    "stop": {"eps": 1e-5, "max_iter": 100000},
+    "neighbor": {"skin": 0.3, "rebalance": 1.2},
+    "output": {"progress_every": 0.5, "dir": None},
+}
+
+
+class SceneError(ValueError):
+    """Bad scene input: the message is one line and names the key."""
+
+
+def builtin_names():
+    return sorted(p.stem for p in resources.files("mpipack.scenes").iterdir() if p.name.endswith(".toml"))
+
+
+def _read(source):
+    """Parse a scene from a path or a built-in name."""
+    path = Path(source)
+    if path.suffix == ".toml" or path.exists():
+        if not path.exists():
+            raise SceneError(f"scene file not found: {source}")
+        text = path.read_text()
+        default_name = path.stem
+    else:
+        names = builtin_names()
+        if source not in names:
+            raise SceneError(f"unknown scene {source!r}: not a file, and not a built-in ({', '.join(names)})")
+        text = resources.files("mpipack.scenes").joinpath(source + ".toml").read_text()
+        default_name = source
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(f"scene {source}: invalid TOML: {e}") from None
+    data.setdefault("name", default_name)
+    return data
+
+
+def _parse_value(text):
+    """An override's value: TOML syntax (numbers, booleans, quoted strings), else a bare string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def _merge(base, over, prefix=""):
+    for key, val in over.items():
+        dotted = prefix + key
+        if key not in base:
+            raise SceneError(f"unknown key '{dotted}'")
+        if isinstance(base[key], dict):
+            if not isinstance(val, dict):
+                raise SceneError(f"key '{dotted}' is a table, got {val!r}")
+            _merge(base[key], val, dotted + ".")
+        else:
+            if isinstance(val, dict):
+                raise SceneError(f"key '{dotted}' is not a table")
+            base[key] = val
+
+
+def load(source=None, overrides=(), seed=None):
+    """Scene dict from a file or built-in name (default: the built-in 'default'), with
+    ``overrides`` as 'dotted.key=value' strings and an optional seed, validated."""
+    data = _read(source or "default")
+    scene = copy.deepcopy(DEFAULTS)
+    _merge(scene, data)
+    for item in overrides:
+        if "=" not in item:
+            raise SceneError(f"--set expects key=value, got {item!r}")
+        key, text = item.split("=", 1)
+        parts = key.strip().split(".")
+        nested = _parse_value(text.strip())
+        for p in reversed(parts):
+            nested = {p: nested}
+        _merge(scene, nested)
+    if seed is not None:
+        scene["seed"] = seed
+    validate(scene)
+    return scene
+
+
+def _num(scene, dotted, kind=float, positive=True, allow_zero=False, optional=False):
+    node = scene
+    *path, last = dotted.split(".")
+    for p in path:
+        node = node[p]
+    v = node[last]
+    if v is None and optional:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise SceneError(f"key '{dotted}' must be a number, got {v!r}")
+    if kind is int:
+        if isinstance(v, float):
+            if not v.is_integer():
+                raise SceneError(f"key '{dotted}' must be an integer, got {v!r}")
+            v = int(v)
+    else:
+        v = float(v)
+        if not math.isfinite(v):
+            raise SceneError(f"key '{dotted}' must be finite, got {v!r}")
+    if positive and (v < 0 or (v == 0 and not allow_zero)):
+        raise SceneError(f"key '{dotted}' must be {'non-negative' if allow_zero else 'positive'}, got {v!r}")
+    node[last] = v
+    return v
+
+
+def validate(scene):
+    """Check types and ranges in place; raises SceneError naming the first bad key."""
+    if not isinstance(scene["name"], str) or not scene["name"]:
+        raise SceneError("key 'name' must be a non-empty string")
+    dim = _num(scene, "dim", int)
+    if dim not in (1, 2, 3):
+        raise SceneError(f"key 'dim' must be 1, 2 or 3, got {dim}")
+    _num(scene, "n", int)
+    _num(scene, "seed", int, allow_zero=True)
+    d = _num(scene, "particles.diameter")
+    dmax = _num(scene, "particles.diameter_max", optional=True)
+    if dmax is not None and dmax < d:
+        raise SceneError(f"key 'particles.diameter_max' must be >= particles.diameter, got {dmax}")
+    init = scene["init"]
+    if init["kind"] not in INIT_KINDS:
+        raise SceneError(f"key 'init.kind' must be one of {', '.join(INIT_KINDS)}, got {init['kind']!r}")
+    _num(scene, "init.sigma")
+    _num(scene, "init.spacing")
+    _num(scene, "init.jitter", allow_zero=True)
+    m = scene["method"]
+    if m["name"] not in METHODS:
+        raise SceneError(f"key 'method.name' must be one of {', '.join(METHODS)}, got {m['name']!r}")
+    if m["form"] not in FORMS:
+        raise SceneError(f"key 'method.form' must be S or NS, got {m['form']!r}")
+    alpha = _num(scene, "method.alpha")
+    beta = _num(scene, "method.beta")
+    _num(scene, "method.c")
+    if _num(scene, "method.gamma", allow_zero=True, optional=True) is None:
+        m["gamma"] = math.sqrt(alpha * beta)
+    _num(scene, "stop.eps", allow_zero=True)
+    _num(scene, "stop.max_iter", int, allow_zero=True)
+    _num(scene, "neighbor.skin")
+    reb = _num(scene, "neighbor.rebalance")
+    if reb < 1:
+        raise SceneError(f"key 'neighbor.rebalance' must be >= 1 (max/mean particles per rank), got {reb}")
+    _num(scene, "output.progress_every", allow_zero=True)
+    if scene["output"]["dir"] is not None and not isinstance(scene["output"]["dir"], str):
+        raise SceneError("key 'output.dir' must be a string")
+    return scene
+
+
+def d_max(scene):
+    """Largest diameter of the scene."""
+    p = scene["particles"]
+    return p["diameter_max"] if p["diameter_max"] is not None else p["diameter"]

@@ -1,0 +1,125 @@
+"""Order-independent ("exact") sums of float64 values, for rank-count-independent reductions.
+
+A floating-point sum depends on the order of its terms, and the order depends on how the
+particles are split across ranks. Here every term is first cut, deterministically and
+independently of the others, into three pieces that are integer multiples of fixed powers of
+two ("bins", as in ReproBLAS' indexed sums); the pieces of one bin are then added exactly.
+Sums of integers are associative, so the result is the same for any order and any partition.
+
+Value x is split with the "add a big constant" trick, which is exact in IEEE round-to-nearest
+arithmetic without fastmath (no reassociation):
+
+    q_k = (r_k + M_k) - M_k,   r_{k+1} = r_k - q_k,   M_k = 1.5 * 2**E_k,
+
+so q_k is r_k rounded to a multiple of ulp(M_k) = 2**(E_k - 52). The bins are 41 bits apart,
+which leaves 12 bits of headroom: up to FLUSH_EVERY pieces add exactly in a float64
+accumulator before it is flushed into int64 counters (units of ulp(M_k)) and carried.
+
+Range and resolution: |x| < RANGE = 2**44 (about 1.8e13) is summed; the part of x below
+2**-78 (about 3e-24) is dropped, deterministically. A value outside the range marks the
+accumulator as overflowed, which the solver reports as divergence.
+
+The accumulator is a small int64 array ``acc[n_quantities, NBINS + 1]``: NBINS counters and one
+overflow flag per quantity. Accumulators from several ranks combine by integer addition
+(``MPI.SUM`` on int64); ``value`` turns one back into a float64, identically on every rank.
+"""
+
+import numpy as np
+from numba import njit
+
+NBINS = 3
+_E0 = 56
+_BIN_GAP = 41
+_EXPS = np.array([_E0 - _BIN_GAP * k for k in range(NBINS)], dtype=np.int64)
+_M = np.array([1.5 * 2.0 ** int(e) for e in _EXPS])
+_ULP = np.array([2.0 ** int(e - 52) for e in _EXPS])
+RANGE = 2.0 ** (_E0 - 12)
+FLUSH_EVERY = 2048
+
+M0, M1, M2 = (float(v) for v in _M)
+ULP0, ULP1, ULP2 = (float(v) for v in _ULP)
+
+
+def new_accumulator(n_quantities):
+    """Zeroed accumulator, shape (n_quantities, NBINS + 1), int64."""
+    return np.zeros((n_quantities, NBINS + 1), dtype=np.int64)
+
+
+@njit(cache=True, inline="always")
+def add(fbuf, q, x):
+    """Add x to quantity q of the float staging buffer ``fbuf[n_quantities, NBINS + 1]``.
+
+    Column NBINS of fbuf counts out-of-range values. Call ``flush`` at least every
+    FLUSH_EVERY additions per quantity.
+    """
+    if not (abs(x) < RANGE):  # also catches NaN
+        fbuf[q, 3] += 1.0
+        return
+    q0 = (x + M0) - M0
+    r = x - q0
+    q1 = (r + M1) - M1
+    r = r - q1
+    q2 = (r + M2) - M2
+    fbuf[q, 0] += q0
+    fbuf[q, 1] += q1
+    fbuf[q, 2] += q2
+
+
+@njit(cache=True)
+def flush(fbuf, acc):
+    """Move the exact float partial sums of ``fbuf`` into the int64 accumulator and carry."""
+    for q in range(fbuf.shape[0]):
+        acc[q, 0] += np.int64(fbuf[q, 0] / ULP0)
+        acc[q, 1] += np.int64(fbuf[q, 1] / ULP1)
+        acc[q, 2] += np.int64(fbuf[q, 2] / ULP2)
+        acc[q, 3] += np.int64(fbuf[q, 3])
+        for k in range(4):
+            fbuf[q, k] = 0.0
+        normalize_row(acc, q)
+
+
+@njit(cache=True, inline="always")
+def normalize_row(acc, q):
+    """Carry so that bins 1 and 2 hold values in [0, 2**41); the value is unchanged."""
+    c = acc[q, 2] >> 41
+    acc[q, 2] -= c << 41
+    acc[q, 1] += c
+    c = acc[q, 1] >> 41
+    acc[q, 1] -= c << 41
+    acc[q, 0] += c
+
+
+@njit(cache=True)
+def accumulate(values, acc, q):
+    """Exact sum of a 1-D float64 array into quantity q of ``acc``."""
+    fbuf = np.zeros((acc.shape[0], NBINS + 1))
+    n = values.shape[0]
+    start = 0
+    while start < n:
+        stop = min(n, start + FLUSH_EVERY)
+        for i in range(start, stop):
+            add(fbuf, q, values[i])
+        flush(fbuf, acc)
+        start = stop
+
+
+@njit(cache=True)
+def value(acc, q):
+    """float64 value of quantity q of a (possibly reduced) accumulator; NaN if it overflowed."""
+    if acc[q, 3] != 0:
+        return np.nan
+    a = acc[q].copy()
+    c = a[2] >> 41
+    a[2] -= c << 41
+    a[1] += c
+    c = a[1] >> 41
+    a[1] -= c << 41
+    a[0] += c
+    return (float(a[0]) * ULP0 + float(a[1]) * ULP1) + float(a[2]) * ULP2
+
+
+def exact_sum(values):
+    """Order-independent sum of a float64 array (serial helper, used in tests and metrics)."""
+    acc = new_accumulator(1)
+    accumulate(np.ascontiguousarray(values, dtype=np.float64).ravel(), acc, 0)
+    return value(acc, 0)

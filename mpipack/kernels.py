@@ -1,0 +1,197 @@
+"""Numba kernels of the damped Arrow-Hurwicz family. Serial array code: never imports MPI.
+
+Notation (Degond, Ferreira, Motsch 2017). Positions X_i in R^b, diameters d_i,
+d_kl = (d_k + d_l) / 2, and for every pair kl a multiplier lambda_kl >= 0. Constraint forms:
+
+    NS (non-smooth):  phi_kl = d_kl - |X_k - X_l|,      grad_{X_k} phi_kl = -(X_k - X_l) / |X_k - X_l|
+    S  (smooth):      phi_kl = d_kl^2 - |X_k - X_l|^2,  grad_{X_k} phi_kl = -2 (X_k - X_l)
+
+Potential W = 1/(2N) sum_{i<j} |X_i - X_j|^2, so grad_{X_i} W = X_i - Xbar.
+
+DAHA, gamma form (section 4.3; gamma = sqrt(alpha beta) is (2.10) exactly):
+
+    (2.10b)  lambda_kl^n   = max(0, lambda_kl^{n-1} + beta phi_kl(X^n))
+    (2.10a)  X_i^{n+1} = a1 X_i^n + a2 X_i^{n-1} - a3 (X_i^n - Xbar^n)
+                         - sum_j lambda_ij^n (a3 + a4 phi_ij(X^n)) grad_{X_i} phi_ij(X^n)
+
+with a1 = 2/(1+c/2), a2 = -(1-c/2)/(1+c/2), a3 = alpha^2/(1+c/2), a4 = gamma^2/(1+c/2).
+AHA (2.8) is the same update with a1 = 1, a2 = 0, a3 = alpha, a4 = 0.
+
+One pass over each particle's pair row does both equations: phi and its gradient at X^n serve
+(2.10b) for lambda^n and then (2.10a) for X^{n+1}. The first iteration uses the given lambda^0
+(update_lambda = False).
+
+Data layout (see ``state.State``): rows i < n_local of ``x`` are local particles, the rest are
+ghosts. Particle i's pairs are ``pair_j[pair_offsets[i]:pair_offsets[i+1]]`` (indices into x),
+sorted by partner global id, with multipliers in ``pair_lambda`` at the same positions. Every
+pair is stored in both partners' rows and updated identically in both, because phi is computed
+from |X_k - X_l|^2, which is bitwise symmetric. Summing the row in partner-gid order makes the
+result independent of how particles are distributed over ranks.
+"""
+
+import numpy as np
+from numba import njit
+
+from . import exactsum
+
+SMOOTH = 0
+NONSMOOTH = 1
+
+# Layout of the per-rank statistics produced by one step.
+# Exact sums (exactsum accumulator rows): sum X^{n+1} (b rows), sum |X^{n+1}-X^n|^2, sum |X^n|^2.
+# Maxima (float64 >= 0): max |X^{n+1} - X_build|^2, max overlap (d_kl - r)/d_kl at X^n.
+# Integer counts: number of row entries with lambda^n > 0 (each pair twice).
+MAX_DISP2 = 0
+MAX_OVERLAP = 1
+N_MAX = 2
+
+
+def coefficients(method, alpha, beta, gamma, c):
+    """Scalar coefficients (a1, a2, a3, a4) of the position update for a method name."""
+    if method == "daha":
+        h = 1.0 + 0.5 * c
+        return 2.0 / h, -(1.0 - 0.5 * c) / h, alpha * alpha / h, gamma * gamma / h
+    if method == "aha":
+        return 1.0, 0.0, alpha, 0.0
+    raise ValueError(f"no one-pass kernel for method {method!r}")
+
+
+@njit(cache=True, inline="always")
+def _multipliers_and_step(form, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j,
+                          pair_lambda, xbar, a1, a2, a3, a4, beta, update_lambda, x_build,
+                          acc, maxima):
+    b = x.shape[1]
+    nq = acc.shape[0]
+    fbuf = np.zeros((nq, exactsum.NBINS + 1))
+    force = np.zeros(b)
+    diff = np.zeros(b)
+    max_disp2 = 0.0
+    max_overlap = 0.0
+    n_active = 0
+    since_flush = 0
+    for i in range(n_local):
+        for k in range(b):
+            force[k] = 0.0
+        di = diam[i]
+        for e in range(pair_offsets[i], pair_offsets[i + 1]):
+            j = pair_j[e]
+            r2 = 0.0
+            for k in range(b):
+                diff[k] = x[i, k] - x[j, k]
+                r2 += diff[k] * diff[k]
+            dij = 0.5 * (di + diam[j])
+            r = 0.0
+            if form == SMOOTH:
+                phi = dij * dij - r2
+            else:
+                r = np.sqrt(r2)
+                phi = dij - r
+            lam = pair_lambda[e]
+            if update_lambda:
+                lam = lam + beta * phi
+                if lam < 0.0:
+                    lam = 0.0
+                pair_lambda[e] = lam
+            if phi > 0.0:
+                if form == SMOOTH:
+                    ov = (dij - np.sqrt(r2)) / dij
+                else:
+                    ov = phi / dij
+                if ov > max_overlap:
+                    max_overlap = ov
+            if lam > 0.0:
+                n_active += 1
+                g = lam * (a3 + a4 * phi)
+                if form == SMOOTH:
+                    # g * grad phi = -2 g diff
+                    for k in range(b):
+                        force[k] -= 2.0 * g * diff[k]
+                elif r > 0.0:
+                    # g * grad phi = -g diff / r ; coincident centres have no direction: skipped
+                    for k in range(b):
+                        force[k] -= g * diff[k] / r
+        dx2 = 0.0
+        xx2 = 0.0
+        disp2 = 0.0
+        for k in range(b):
+            xi = x[i, k]
+            xn = a1 * xi + a2 * x_prev[i, k] - a3 * (xi - xbar[k]) - force[k]
+            x_new[i, k] = xn
+            exactsum.add(fbuf, k, xn)
+            dx2 += (xn - xi) * (xn - xi)
+            xx2 += xi * xi
+            disp2 += (xn - x_build[i, k]) * (xn - x_build[i, k])
+        exactsum.add(fbuf, b, dx2)
+        exactsum.add(fbuf, b + 1, xx2)
+        if disp2 > max_disp2 or disp2 != disp2:
+            max_disp2 = disp2
+        since_flush += 1
+        if since_flush == exactsum.FLUSH_EVERY:
+            exactsum.flush(fbuf, acc)
+            since_flush = 0
+    exactsum.flush(fbuf, acc)
+    maxima[MAX_DISP2] = max_disp2
+    maxima[MAX_OVERLAP] = max_overlap
+    return n_active
+
+
+@njit(cache=True)
+def multipliers_and_step_s(x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda,
+                           xbar, a1, a2, a3, a4, beta, update_lambda, x_build, acc, maxima):
+    """(2.10b) then (2.10a) for the smooth form; see the module docstring.
+
+    Shapes: x, x_prev, x_new (n_total, b); diam (n_total,); pair_offsets (n_local+1,);
+    pair_j int32 and pair_lambda float64 (n_pairs,); xbar (b,); x_build (n_local, b);
+    acc int64 (b+2, exactsum.NBINS+1), added to; maxima float64 (N_MAX,), overwritten.
+    Writes x_new[:n_local] and, if update_lambda, pair_lambda. Returns the number of row entries
+    with lambda > 0.
+    """
+    return _multipliers_and_step(SMOOTH, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j,
+                                 pair_lambda, xbar, a1, a2, a3, a4, beta, update_lambda,
+                                 x_build, acc, maxima)
+
+
+@njit(cache=True)
+def multipliers_and_step_ns(x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda,
+                            xbar, a1, a2, a3, a4, beta, update_lambda, x_build, acc, maxima):
+    """(2.10b) then (2.10a) for the non-smooth form; arguments as multipliers_and_step_s."""
+    return _multipliers_and_step(NONSMOOTH, x, x_prev, x_new, n_local, diam, pair_offsets,
+                                 pair_j, pair_lambda, xbar, a1, a2, a3, a4, beta, update_lambda,
+                                 x_build, acc, maxima)
+
+
+@njit(cache=True)
+def local_sums(x, n_local, acc):
+    """Exact sums of X (b rows) and |X|^2 (row b) over local particles, added to acc."""
+    b = x.shape[1]
+    fbuf = np.zeros((acc.shape[0], exactsum.NBINS + 1))
+    since = 0
+    for i in range(n_local):
+        s = 0.0
+        for k in range(b):
+            exactsum.add(fbuf, k, x[i, k])
+            s += x[i, k] * x[i, k]
+        exactsum.add(fbuf, b, s)
+        since += 1
+        if since == exactsum.FLUSH_EVERY:
+            exactsum.flush(fbuf, acc)
+            since = 0
+    exactsum.flush(fbuf, acc)
+
+
+@njit(cache=True)
+def centred_sums(x, n_local, xbar, acc):
+    """Exact sum of |X_i - Xbar|^2 over local particles into acc row 0 (W = half of it)."""
+    b = x.shape[1]
+    fbuf = np.zeros((acc.shape[0], exactsum.NBINS + 1))
+    since = 0
+    for i in range(n_local):
+        s = 0.0
+        for k in range(b):
+            s += (x[i, k] - xbar[k]) * (x[i, k] - xbar[k])
+        exactsum.add(fbuf, 0, s)
+        since += 1
+        if since == exactsum.FLUSH_EVERY:
+            exactsum.flush(fbuf, acc)
+            since = 0
+    exactsum.flush(fbuf, acc)

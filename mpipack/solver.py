@@ -1,0 +1,327 @@
+"""The iteration loop: DAHA / AHA on a spatially decomposed particle cloud.
+
+One iteration, n -> n+1 (every rank, in lock step):
+
+    step        kernels: lambda^n = max(0, lambda^{n-1} + beta phi(X^n))       (2.10b)
+                         X^{n+1} from X^n, X^{n-1}, lambda^n, Xbar^n            (2.10a)
+    reduce      ONE allreduce: exact sum X^{n+1} (-> Xbar^{n+1}), ||X^{n+1}-X^n||^2, ||X^n||^2,
+                active pair count; max displacement since the rows were built, max overlap,
+                max particles per rank
+    rebuild     if max displacement > skin/2: exchange (migrate with pair history), rebalance
+                when max/mean particles per rank > neighbor.rebalance, borders, pair rows
+    or forward  ghost positions X^{n+1} from their owners
+    stop        ||X^{n+1} - X^n|| / ||X^n|| < eps   (4.3)
+
+Every decision (stop, rebuild, rebalance, numerical failure) is taken from allreduced numbers,
+so all ranks take it on the same iteration. Sums are exact (see ``exactsum``), pair sums run in
+partner-gid order and the initial data is a function of gid only: the trajectory is bitwise
+the same on any number of ranks.
+
+Stopping criterion (4.3) in math: with X^n in R^{bN},
+    ||X^{n+1} - X^n||_2 / ||X^n||_2 < eps.
+It is a relative change, not a distance to the optimum: it can fire while the configuration is
+still creeping (slow modes), and it is not translation invariant.
+"""
+
+import math
+import time
+
+import numpy as np
+
+from . import comm as comm_mod
+from . import config, domain, exactsum, init, kernels, metrics, neighbors
+from .state import State, gather_rows
+
+
+class NumericalError(RuntimeError):
+    """NaN, Inf or divergence in the state."""
+
+
+class Solver:
+    """Owns the state of one rank and advances it. ``comm`` is a ``comm.Comm``."""
+
+    def __init__(self, scene, comm):
+        self.scene = scene
+        self.comm = comm
+        self.dim = scene["dim"]
+        self.n = scene["n"]
+        m = scene["method"]
+        self.method = m["name"]
+        self.form = m["form"]
+        self.beta = float(m["beta"])
+        self.coeffs = kernels.coefficients(self.method, m["alpha"], m["beta"], m["gamma"], m["c"])
+        self._kernel = (kernels.multipliers_and_step_s if self.form == "S"
+                        else kernels.multipliers_and_step_ns)
+        self.d_max = config.d_max(scene)
+        self.skin = float(scene["neighbor"]["skin"]) * self.d_max
+        self.r_ghost = self.d_max + self.skin
+        self.state = State(self.dim, self.n)
+        self.partition = domain.Partition.whole_space(self.dim)
+        self.plan = comm_mod.GhostPlan.empty()
+        self.xbar = np.zeros(self.dim)
+        self.counters = {"rebuilds": 0, "rebalances": 0, "far_ghosts": 0}
+        self.last = {}  # last reduced figures
+        self._acc = exactsum.new_accumulator(self.dim + 2)
+        self._maxima = np.zeros(kernels.N_MAX)
+
+    # ---- set-up ----------------------------------------------------------------------------
+    def initialise(self):
+        """Initial data for this rank's gid block, then partition, migrate, ghosts and rows."""
+        r, P, N = self.comm.rank, self.comm.size, self.n
+        gids = np.arange(N * r // P, N * (r + 1) // P, dtype=np.int64)
+        x = init.positions(self.scene, gids)
+        p = self.scene["particles"]
+        dmax = p["diameter_max"] if p["diameter_max"] is not None else p["diameter"]
+        diam = init.diameters(self.scene["seed"], gids, float(p["diameter"]), float(dmax))
+        st = self.state
+        st.set_particles(x, x.copy(), gids, diam, np.zeros((0, self.dim)),
+                         np.zeros(0, np.int64), np.zeros(0))
+        st.pair_offsets = np.zeros(x.shape[0] + 1, dtype=np.int64)
+        st.lambda_fresh = True
+        st.iteration = 0
+        self.rebuild(rebalance=True)
+        self.xbar = self._centre_of_mass()
+
+    def _centre_of_mass(self):
+        st = self.state
+        acc = exactsum.new_accumulator(self.dim + 1)
+        kernels.local_sums(st.x, st.n_local, acc)
+        g, _ = self.comm.reduce_fused(acc, np.zeros(0))
+        return np.array([exactsum.value(g, k) for k in range(self.dim)]) / self.n
+
+    # ---- one iteration ---------------------------------------------------------------------
+    def step(self):
+        """Advance one iteration; returns the reduced figures of this iteration."""
+        st = self.state
+        a1, a2, a3, a4 = self.coeffs
+        acc = self._acc
+        acc[:] = 0
+        n_active = self._kernel(st.x, st.x_prev, st.x_new, st.n_local, st.diam, st.pair_offsets,
+                                st.pair_j, st.pair_lambda, self.xbar, a1, a2, a3, a4, self.beta,
+                                not st.lambda_fresh, st.x_build, acc, self._maxima)
+        st.lambda_fresh = False
+        sums = np.append(acc.ravel(), np.int64(n_active))
+        maxima = np.append(self._maxima, float(st.n_local))
+        g_sums, g_max = self.comm.reduce_fused(sums, maxima)
+        g_acc = g_sums[:-1].reshape(acc.shape)
+        b = self.dim
+        if any(g_acc[q, exactsum.NBINS] != 0 for q in range(b + 2)) or not np.all(np.isfinite(g_max)):
+            raise NumericalError(
+                f"non-finite or diverging positions at iteration {st.iteration + 1} "
+                f"(|X| beyond {exactsum.RANGE:.3g} or NaN/Inf); lower alpha/beta or raise c")
+        self.xbar = np.array([exactsum.value(g_acc, k) for k in range(b)]) / self.n
+        dx2 = exactsum.value(g_acc, b)
+        xx2 = exactsum.value(g_acc, b + 1)
+        st.rotate()
+        st.iteration += 1
+        rel = math.sqrt(dx2 / xx2) if xx2 > 0 else (0.0 if dx2 == 0 else math.inf)
+        max_disp = math.sqrt(g_max[kernels.MAX_DISP2])
+        fig = {
+            "iteration": st.iteration,
+            "relative_change": rel,
+            "max_overlap": float(g_max[kernels.MAX_OVERLAP]),
+            "active_pairs": int(g_sums[-1]) // 2,
+            "max_displacement": max_disp,
+            "max_local": int(g_max[2]),
+        }
+        # neighbour rows stay valid while no particle has moved more than skin/2
+        if max_disp > 0.5 * self.skin:
+            imbalance = fig["max_local"] * self.comm.size / self.n
+            self.rebuild(rebalance=imbalance > self.scene["neighbor"]["rebalance"])
+        else:
+            comm_mod.forward(self.comm, self.plan, st.x, st.n_local)
+        self.last = fig
+        return fig
+
+    # ---- rebuild: exchange, (balance), borders, rows -----------------------------------------
+    def rebuild(self, rebalance=False):
+        st, comm = self.state, self.comm
+        n_local = st.n_local
+        hist_off, hist_gid, hist_lam = neighbors.history(n_local, st.gid, st.pair_offsets,
+                                                         st.pair_j, st.pair_lambda)
+        x = st.x[:n_local].copy()
+        x_prev = st.x_prev[:n_local].copy()
+        gid = st.gid[:n_local].copy()
+        diam = st.diam[:n_local].copy()
+        if comm.size > 1:
+            if rebalance:
+                self.partition = domain.rcb(comm, x, n_local)
+                self.counters["rebalances"] += 1
+            x, x_prev, gid, diam, hist_off, hist_gid, hist_lam = self._exchange(
+                x, x_prev, gid, diam, hist_off, hist_gid, hist_lam)
+            ghost_x, ghost_gid, ghost_diam = self._borders(x, gid, diam, hist_gid)
+        else:
+            ghost_x, ghost_gid, ghost_diam = np.zeros((0, self.dim)), np.zeros(0, np.int64), np.zeros(0)
+        lam_fresh = st.lambda_fresh
+        st.set_particles(x, x_prev, gid, diam, ghost_x, ghost_gid, ghost_diam)
+        st.lambda_fresh = lam_fresh
+        st.pair_offsets, st.pair_j, st.pair_lambda, missing = neighbors.build_rows(
+            st.x, st.n_local, st.n_total, st.gid, st.diam, self.skin, hist_off, hist_gid, hist_lam)
+        if missing:
+            raise RuntimeError(f"internal error: {missing} pair partners with lambda > 0 are missing "
+                               f"on rank {comm.rank} after the ghost exchange")
+        st.x_build = st.x[: st.n_local].copy()
+        self.counters["rebuilds"] += 1
+
+    def _exchange(self, x, x_prev, gid, diam, hist_off, hist_gid, hist_lam):
+        """Move every particle to the owner of its position; its pair history moves with it."""
+        comm = self.comm
+        owners = self.partition.owners(x, x.shape[0])
+        order = np.argsort(owners, kind="stable")
+        movers = order[owners[order] != comm.rank]
+        stay = np.flatnonzero(owners == comm.rank)
+        dest = owners[movers]
+        counts = np.bincount(dest, minlength=comm.size).astype(np.int64)
+        h_off, h_idx = gather_rows(hist_off, movers)
+        h_counts = np.diff(h_off)
+        h_per_rank = np.bincount(dest, weights=h_counts, minlength=comm.size).astype(np.int64)
+        got, _ = comm.alltoallv(
+            {"x": x[movers], "x_prev": x_prev[movers], "gid": gid[movers], "diam": diam[movers],
+             "h_count": h_counts, "h_gid": hist_gid[h_idx], "h_lam": hist_lam[h_idx]},
+            {"x": counts, "x_prev": counts, "gid": counts, "diam": counts, "h_count": counts,
+             "h_gid": h_per_rank, "h_lam": h_per_rank})
+        s_off, s_idx = gather_rows(hist_off, stay)
+        counts_all = np.concatenate([np.diff(s_off), got["h_count"]])
+        new_off = np.zeros(counts_all.shape[0] + 1, dtype=np.int64)
+        np.cumsum(counts_all, out=new_off[1:])
+        return (np.concatenate([x[stay], got["x"]]), np.concatenate([x_prev[stay], got["x_prev"]]),
+                np.concatenate([gid[stay], got["gid"]]), np.concatenate([diam[stay], got["diam"]]),
+                new_off, np.concatenate([hist_gid[s_idx], got["h_gid"]]),
+                np.concatenate([hist_lam[s_idx], got["h_lam"]]))
+
+    def _borders(self, x, gid, diam, hist_gid):
+        """Ghosts: particles within r_ghost of this rank's box, plus any pair-history partner
+        (lambda > 0) that is further away; those are requested from their owners."""
+        comm = self.comm
+        n_local = x.shape[0]
+        part = self.partition
+        offsets, idx = domain.ghost_destinations(x, n_local, comm.rank, part.lo, part.hi, self.r_ghost)
+        fields = {"x": x, "gid": gid, "diam": diam}
+        plan, got = comm_mod.borders(comm, offsets, idx, fields)
+        present = np.concatenate([gid, got["gid"]])
+        missing = neighbors.missing_partners(present.shape[0], present, hist_gid)
+        requests = comm.allgather_object(missing)
+        if any(len(r) for r in requests):
+            # far partners: each owner adds the requested particles to its send lists
+            local_sorted = np.argsort(gid)
+            extra_rank, extra_idx = [], []
+            for r, req in enumerate(requests):
+                if r == comm.rank or len(req) == 0:
+                    continue
+                pos = np.searchsorted(gid[local_sorted], req)
+                pos = np.minimum(pos, max(n_local - 1, 0))
+                found = (n_local > 0) & (gid[local_sorted][pos] == req) if n_local else np.zeros(len(req), bool)
+                rows = local_sorted[pos[found]]
+                already = set(idx[offsets[r]:offsets[r + 1]].tolist())
+                rows = np.array([i for i in rows.tolist() if i not in already], dtype=np.int64)
+                extra_rank.append(np.full(rows.shape[0], r, dtype=np.int64))
+                extra_idx.append(rows)
+            self.counters["far_ghosts"] += int(sum(len(r) for r in requests))
+            ranks = np.concatenate([np.repeat(np.arange(comm.size), np.diff(offsets))] + extra_rank)
+            rows = np.concatenate([idx] + extra_idx)
+            o = np.argsort(ranks, kind="stable")
+            idx = rows[o]
+            offsets = np.zeros(comm.size + 1, dtype=np.int64)
+            np.cumsum(np.bincount(ranks, minlength=comm.size), out=offsets[1:])
+            plan, got = comm_mod.borders(comm, offsets, idx, fields)
+        self.plan = plan
+        return got["x"], got["gid"], got["diam"]
+
+    # ---- end of run --------------------------------------------------------------------------
+    def finish(self):
+        """Bring lambda up to date with the final X (2.10b) and return final figures:
+        max overlap, W, packing density about the centre of mass, active pairs."""
+        st = self.state
+        if not st.lambda_fresh:
+            # one (2.10b) pass; the step it also computes is discarded
+            acc = exactsum.new_accumulator(self.dim + 2)
+            a1, a2, a3, a4 = self.coeffs
+            self._kernel(st.x, st.x_prev, st.x_new, st.n_local, st.diam, st.pair_offsets,
+                         st.pair_j, st.pair_lambda, self.xbar, a1, a2, a3, a4, self.beta, True,
+                         st.x_build, acc, self._maxima)
+            st.lambda_fresh = True
+        else:
+            acc = exactsum.new_accumulator(self.dim + 2)
+            self._kernel(st.x, st.x_prev, st.x_new, st.n_local, st.diam, st.pair_offsets,
+                         st.pair_j, st.pair_lambda.copy(), self.xbar, 0.0, 0.0, 0.0, 0.0, 0.0,
+                         False, st.x_build, acc, self._maxima)
+        w_acc = exactsum.new_accumulator(1)
+        kernels.centred_sums(st.x, st.n_local, self.xbar, w_acc)
+        n_active = int(np.count_nonzero(st.pair_lambda > 0))
+        g, gmax = self.comm.reduce_fused(np.append(w_acc.ravel(), n_active), self._maxima[:2].copy())
+        sum_sq = exactsum.value(g[:-1].reshape(w_acc.shape), 0)
+        W = 0.5 * sum_sq
+        r_gyr = math.sqrt(sum_sq / self.n)
+        radii = np.array([r_gyr]) if r_gyr > 0 else np.array([self.d_max])
+        c_acc = exactsum.new_accumulator(radii.shape[0])
+        metrics.covered_measure(st.x, st.diam, st.n_local, self.xbar, radii, c_acc)
+        gc, _ = self.comm.reduce_fused(c_acc, np.zeros(0))
+        density = exactsum.value(gc, 0) / metrics.ball_measure(self.dim, radii[0])
+        return {
+            "max_overlap": float(gmax[kernels.MAX_OVERLAP]),
+            "W": W,
+            "density": density,
+            "density_radius": float(radii[0]),
+            "active_pairs": int(g[-1]) // 2,
+        }
+
+    def gather(self, root=0):
+        """All particles and lambda > 0 pairs on ``root``, in gid order (for tests and small N).
+
+        Returns dict(gid, x, x_prev, diam, pairs=(gid_i, gid_j, lambda) with gid_i < gid_j) on
+        root, None elsewhere.
+        """
+        st = self.state
+        n = st.n_local
+        gi, gj, lam = st.local_pairs()
+        mine = {"gid": st.gid[:n], "x": st.x[:n], "x_prev": st.x_prev[:n], "diam": st.diam[:n],
+                "pi": gi, "pj": gj, "pl": lam}
+        parts = [mine] if self.comm.size == 1 else self.comm.mpi.gather(mine, root=root)
+        if self.comm.rank != root:
+            return None
+        cat = {k: np.concatenate([p[k] for p in parts]) for k in mine}
+        o = np.argsort(cat["gid"])
+        keep = cat["pi"] < cat["pj"]
+        po = np.lexsort((cat["pj"][keep], cat["pi"][keep]))
+        return {"gid": cat["gid"][o], "x": cat["x"][o], "x_prev": cat["x_prev"][o],
+                "diam": cat["diam"][o],
+                "pairs_gid": np.stack([cat["pi"][keep][po], cat["pj"][keep][po]], axis=1),
+                "pairs_lambda": cat["pl"][keep][po]}
+
+
+def run(scene, comm, on_progress=None, max_seconds=None):
+    """Run a scene to convergence or max_iter. Returns (solver, result dict).
+
+    on_progress(figures, elapsed) is called on every rank after each iteration (the caller
+    decides what to print, and where).
+    """
+    solver = Solver(scene, comm)
+    t0 = time.perf_counter()
+    solver.initialise()
+    t_setup = time.perf_counter() - t0
+    eps = scene["stop"]["eps"]
+    max_iter = scene["stop"]["max_iter"]
+    converged = False
+    fig = {"relative_change": math.nan}
+    t_loop = time.perf_counter()
+    while solver.state.iteration < max_iter:
+        fig = solver.step()
+        if on_progress is not None:
+            on_progress(fig, time.perf_counter() - t_loop)
+        if eps > 0 and fig["relative_change"] < eps:
+            converged = True
+            break
+    loop_seconds = time.perf_counter() - t_loop
+    final = solver.finish()
+    iters = solver.state.iteration
+    result = {
+        "iterations": iters,
+        "converged": converged,
+        "relative_change": fig["relative_change"],
+        "setup_seconds": t_setup,
+        "loop_seconds": loop_seconds,
+        "particle_iterations_per_second": (solver.n * iters / loop_seconds) if loop_seconds > 0 else 0.0,
+        **final,
+        **solver.counters,
+    }
+    return solver, result
