@@ -57,28 +57,40 @@ def coefficients(method, alpha, beta, gamma, c):
 
 
 @njit(cache=True, inline="always")
-def _multipliers_and_step(form, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j,
+def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j,
                           pair_lambda, xbar, a1, a2, a3, a4, beta, update_lambda, x_build,
                           acc, maxima):
-    b = x.shape[1]
-    nq = acc.shape[0]
-    fbuf = np.zeros((nq, exactsum.NBINS + 1))
-    force = np.zeros(b)
-    diff = np.zeros(b)
+    # form and dim are compile-time constants of each wrapper below: LLVM removes the dead
+    # branches and keeps the coordinates in registers (a runtime range(dim) loop does not).
+    fbuf = np.zeros((dim + 2, exactsum.NBINS + 1))
+    xb0 = xbar[0]
+    xb1 = xbar[1] if dim > 1 else 0.0
+    xb2 = xbar[2] if dim > 2 else 0.0
     max_disp2 = 0.0
     max_overlap = 0.0
+    min_ratio2 = 1.0
     n_active = 0
     since_flush = 0
     for i in range(n_local):
-        for k in range(b):
-            force[k] = 0.0
+        xi0 = x[i, 0]
+        xi1 = x[i, 1] if dim > 1 else 0.0
+        xi2 = x[i, 2] if dim > 2 else 0.0
+        f0 = 0.0
+        f1 = 0.0
+        f2 = 0.0
         di = diam[i]
         for e in range(pair_offsets[i], pair_offsets[i + 1]):
             j = pair_j[e]
-            r2 = 0.0
-            for k in range(b):
-                diff[k] = x[i, k] - x[j, k]
-                r2 += diff[k] * diff[k]
+            d0 = xi0 - x[j, 0]
+            d1 = 0.0
+            d2 = 0.0
+            r2 = d0 * d0
+            if dim > 1:
+                d1 = xi1 - x[j, 1]
+                r2 += d1 * d1
+            if dim > 2:
+                d2 = xi2 - x[j, 2]
+                r2 += d2 * d2
             dij = 0.5 * (di + diam[j])
             r = 0.0
             if form == SMOOTH:
@@ -92,37 +104,52 @@ def _multipliers_and_step(form, x, x_prev, x_new, n_local, diam, pair_offsets, p
                 if lam < 0.0:
                     lam = 0.0
                 pair_lambda[e] = lam
+            # largest overlap (d_ij - r)/d_ij, without a division per pair: track the
+            # smallest r^2/d_ij^2 (S) or largest phi/d_ij (NS) by cross-multiplication
             if phi > 0.0:
                 if form == SMOOTH:
-                    ov = (dij - np.sqrt(r2)) / dij
-                else:
-                    ov = phi / dij
-                if ov > max_overlap:
-                    max_overlap = ov
+                    if r2 < min_ratio2 * (dij * dij):
+                        min_ratio2 = r2 / (dij * dij)
+                elif phi > max_overlap * dij:
+                    max_overlap = phi / dij
             if lam > 0.0:
                 n_active += 1
                 g = lam * (a3 + a4 * phi)
                 if form == SMOOTH:
-                    # g * grad phi = -2 g diff
-                    for k in range(b):
-                        force[k] -= 2.0 * g * diff[k]
+                    # g grad_i phi = -2 g (X_i - X_j)
+                    g = 2.0 * g
+                    f0 -= g * d0
+                    f1 -= g * d1
+                    f2 -= g * d2
                 elif r > 0.0:
-                    # g * grad phi = -g diff / r ; coincident centres have no direction: skipped
-                    for k in range(b):
-                        force[k] -= g * diff[k] / r
-        dx2 = 0.0
-        xx2 = 0.0
-        disp2 = 0.0
-        for k in range(b):
-            xi = x[i, k]
-            xn = a1 * xi + a2 * x_prev[i, k] - a3 * (xi - xbar[k]) - force[k]
-            x_new[i, k] = xn
-            exactsum.add(fbuf, k, xn)
-            dx2 += (xn - xi) * (xn - xi)
-            xx2 += xi * xi
-            disp2 += (xn - x_build[i, k]) * (xn - x_build[i, k])
-        exactsum.add(fbuf, b, dx2)
-        exactsum.add(fbuf, b + 1, xx2)
+                    # g grad_i phi = -g (X_i - X_j) / r; coincident centres have no direction
+                    g = g / r
+                    f0 -= g * d0
+                    f1 -= g * d1
+                    f2 -= g * d2
+        # (2.10a); also the exact partial sums and the maxima for the fused reduction
+        xn0 = a1 * xi0 + a2 * x_prev[i, 0] - a3 * (xi0 - xb0) - f0
+        x_new[i, 0] = xn0
+        exactsum.add(fbuf, 0, xn0)
+        dx2 = (xn0 - xi0) * (xn0 - xi0)
+        xx2 = xi0 * xi0
+        disp2 = (xn0 - x_build[i, 0]) * (xn0 - x_build[i, 0])
+        if dim > 1:
+            xn1 = a1 * xi1 + a2 * x_prev[i, 1] - a3 * (xi1 - xb1) - f1
+            x_new[i, 1] = xn1
+            exactsum.add(fbuf, 1, xn1)
+            dx2 += (xn1 - xi1) * (xn1 - xi1)
+            xx2 += xi1 * xi1
+            disp2 += (xn1 - x_build[i, 1]) * (xn1 - x_build[i, 1])
+        if dim > 2:
+            xn2 = a1 * xi2 + a2 * x_prev[i, 2] - a3 * (xi2 - xb2) - f2
+            x_new[i, 2] = xn2
+            exactsum.add(fbuf, 2, xn2)
+            dx2 += (xn2 - xi2) * (xn2 - xi2)
+            xx2 += xi2 * xi2
+            disp2 += (xn2 - x_build[i, 2]) * (xn2 - x_build[i, 2])
+        exactsum.add(fbuf, dim, dx2)
+        exactsum.add(fbuf, dim + 1, xx2)
         if disp2 > max_disp2 or disp2 != disp2:
             max_disp2 = disp2
         since_flush += 1
@@ -130,34 +157,74 @@ def _multipliers_and_step(form, x, x_prev, x_new, n_local, diam, pair_offsets, p
             exactsum.flush(fbuf, acc)
             since_flush = 0
     exactsum.flush(fbuf, acc)
+    if form == SMOOTH:
+        max_overlap = 1.0 - np.sqrt(min_ratio2)
     maxima[MAX_DISP2] = max_disp2
     maxima[MAX_OVERLAP] = max_overlap
     return n_active
 
 
-@njit(cache=True)
-def multipliers_and_step_s(x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda,
-                           xbar, a1, a2, a3, a4, beta, update_lambda, x_build, acc, maxima):
-    """(2.10b) then (2.10a) for the smooth form; see the module docstring.
+_DOC = """(2.10b) then (2.10a) for one form and dimension; see the module docstring.
 
     Shapes: x, x_prev, x_new (n_total, b); diam (n_total,); pair_offsets (n_local+1,);
     pair_j int32 and pair_lambda float64 (n_pairs,); xbar (b,); x_build (n_local, b);
     acc int64 (b+2, exactsum.NBINS+1), added to; maxima float64 (N_MAX,), overwritten.
-    Writes x_new[:n_local] and, if update_lambda, pair_lambda. Returns the number of row entries
-    with lambda > 0.
+    Writes x_new[:n_local] and, if update_lambda, pair_lambda. Returns the number of row
+    entries with lambda > 0.
     """
-    return _multipliers_and_step(SMOOTH, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j,
-                                 pair_lambda, xbar, a1, a2, a3, a4, beta, update_lambda,
-                                 x_build, acc, maxima)
+
+
+# One small wrapper per (form, dim), so that only what a scene uses is compiled (and cached).
+# Written out rather than made by a closure factory: numba caches top-level functions only.
+@njit(cache=True)
+def step_s1(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx):
+    return _multipliers_and_step(SMOOTH, 1, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx)
 
 
 @njit(cache=True)
-def multipliers_and_step_ns(x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda,
-                            xbar, a1, a2, a3, a4, beta, update_lambda, x_build, acc, maxima):
-    """(2.10b) then (2.10a) for the non-smooth form; arguments as multipliers_and_step_s."""
-    return _multipliers_and_step(NONSMOOTH, x, x_prev, x_new, n_local, diam, pair_offsets,
-                                 pair_j, pair_lambda, xbar, a1, a2, a3, a4, beta, update_lambda,
-                                 x_build, acc, maxima)
+def step_s2(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx):
+    return _multipliers_and_step(SMOOTH, 2, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx)
+
+
+@njit(cache=True)
+def step_s3(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx):
+    return _multipliers_and_step(SMOOTH, 3, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx)
+
+
+@njit(cache=True)
+def step_ns1(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx):
+    return _multipliers_and_step(NONSMOOTH, 1, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx)
+
+
+@njit(cache=True)
+def step_ns2(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx):
+    return _multipliers_and_step(NONSMOOTH, 2, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx)
+
+
+@njit(cache=True)
+def step_ns3(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx):
+    return _multipliers_and_step(NONSMOOTH, 3, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx)
+
+
+_STEPS = {("S", 1): step_s1, ("S", 2): step_s2, ("S", 3): step_s3,
+          ("NS", 1): step_ns1, ("NS", 2): step_ns2, ("NS", 3): step_ns3}
+for _f in _STEPS.values():
+    _f.__doc__ = _DOC
+
+
+def multipliers_and_step(form, dim):
+    """The compiled one-pass kernel for a constraint form ('S' or 'NS') and dimension (1-3)."""
+    return _STEPS[(form, dim)]
+
+
+def multipliers_and_step_s(x, *args):
+    """Smooth form, dimension taken from x (convenience for tests)."""
+    return _STEPS[("S", x.shape[1])](x, *args)
+
+
+def multipliers_and_step_ns(x, *args):
+    """Non-smooth form, dimension taken from x (convenience for tests)."""
+    return _STEPS[("NS", x.shape[1])](x, *args)
 
 
 @njit(cache=True)

@@ -1,0 +1,109 @@
+"""``mpipack bench``: particle-iterations per second per rank and resident bytes per particle.
+
+The benchmark starts from a packed state: the N lattice points (triangular in 2D, FCC in 3D)
+nearest the origin, spacing 0.99 d, so each sphere overlaps its lattice neighbours by 1% and,
+from the second iteration on, every contact carries a multiplier: the most work a pair row
+can ask for (every branch taken). Small alpha and beta keep the lattice in place during the
+timed loop, so the figure is the steady cost of an iteration near convergence, without the
+rebuilds of the expansion phase (those are counted and printed). The kernel's work per pair
+does not depend on the parameter values.
+
+Figures (median over repeats of the timed loop, all ranks in lock step):
+    particle-iterations / s / rank = N * iterations / (loop seconds * ranks)
+    bytes / particle = (resident set after set-up - resident set before) / local particles,
+                       the largest over ranks (interpreter, numba and MPI are not counted)
+"""
+
+import json
+import os
+import resource
+import time
+
+import numpy as np
+
+PARAMS = dict(alpha=1e-3, beta=1.0, gamma=1e-3)
+
+
+def _rss_bytes():
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def bench_case(comm, dim, n, form="S", iters=None, repeats=3, spacing=0.99, seed=1):
+    """Run one case; returns a dict of figures (identical on every rank)."""
+    from . import config
+    from .solver import Solver
+
+    p = PARAMS
+    overrides = [f"dim={dim}", f"n={n}", "init.kind=lattice", f"init.spacing={spacing}",
+                 f"method.form={form}", f"method.alpha={p['alpha']}", f"method.beta={p['beta']}",
+                 "stop.eps=0", f"seed={seed}"]
+    if p["gamma"] is not None:
+        overrides.append(f"method.gamma={p['gamma']}")
+    scene = config.load("default", overrides)
+    comm.barrier()
+    rss0 = _rss_bytes()
+    solver = Solver(scene, comm)
+    t0 = time.perf_counter()
+    solver.initialise()
+    setup = comm.allreduce(np.array([time.perf_counter() - t0]), op="max")[0]
+    rss1 = _rss_bytes()
+    n_local = max(solver.state.n_local, 1)
+    bpp = comm.allreduce(np.array([(rss1 - rss0) / n_local]), op="max")[0]
+    for _ in range(3):
+        solver.step()
+    if iters is None:
+        comm.barrier()
+        t = time.perf_counter()
+        for _ in range(5):
+            solver.step()
+        dt = comm.allreduce(np.array([time.perf_counter() - t]), op="max")[0] / 5
+        iters = int(max(10, min(2000, 2.0 / max(dt, 1e-9))))
+    rates = []
+    rebuilds0 = solver.counters["rebuilds"]
+    for _ in range(repeats):
+        comm.barrier()
+        t = time.perf_counter()
+        for _ in range(iters):
+            solver.step()
+        dt = comm.allreduce(np.array([time.perf_counter() - t]), op="max")[0]
+        rates.append(n * iters / dt / comm.size)
+    peak = comm.allreduce(np.array([resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024.0]), op="max")[0]
+    st = solver.state
+    pairs = comm.allreduce(np.array([st.pair_offsets[-1]], dtype=np.int64), op="sum")[0]
+    return {
+        "dim": dim, "n": n, "ranks": comm.size, "form": form, "iterations": iters,
+        "repeats": repeats,
+        "rate_per_rank_median": float(np.median(rates)),
+        "rate_per_rank_all": [float(r) for r in rates],
+        "bytes_per_particle": float(bpp),
+        "peak_rss_mb": float(peak / 2**20),
+        "setup_seconds": float(setup),
+        "row_entries_per_particle": float(pairs) / n,
+        "rebuilds_in_timed_loops": solver.counters["rebuilds"] - rebuilds0,
+    }
+
+
+def main(args):
+    from .comm import Comm
+    comm = Comm()
+    dims = args.dim or [2, 3]
+    ns = [int(v) for v in (args.n or [1e4, 1e5, 1e6])]
+    rows = []
+    if comm.rank == 0:
+        print(f"mpipack bench: {comm.size} rank(s), form {args.form}, lattice start spacing 0.99 d")
+        print(f"{'dim':>3} {'N':>9} {'iters':>6} {'Mpart-it/s/rank':>16} {'bytes/particle':>15} "
+              f"{'entries/part':>12} {'setup s':>8} {'peak MB':>8}", flush=True)
+    for dim in dims:
+        for n in ns:
+            r = bench_case(comm, dim, n, form=args.form, iters=args.iters)
+            rows.append(r)
+            if comm.rank == 0:
+                print(f"{dim:>3} {n:>9} {r['iterations']:>6} {r['rate_per_rank_median'] / 1e6:>16.2f} "
+                      f"{r['bytes_per_particle']:>15.0f} {r['row_entries_per_particle']:>12.1f} "
+                      f"{r['setup_seconds']:>8.2f} {r['peak_rss_mb']:>8.0f}", flush=True)
+    if comm.rank == 0 and args.json:
+        with open(args.json, "a") as f:
+            for r in rows:
+                f.write(json.dumps(r) + "\n")
+    return 0
