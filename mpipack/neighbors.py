@@ -64,6 +64,44 @@ def cell_keys(x, n, h):
 
 
 @njit(cache=True)
+def _cell_index(keys, n_cells_dense):
+    """Particles sorted by cell key, and a way to find each cell's members.
+
+    Returns (order, skeys, cell_start): order sorts keys; if n_cells_dense > 0, cell_start
+    (n_cells_dense+1,) gives cell c's members as order[cell_start[c]:cell_start[c+1]] (a
+    counting sort, O(n)); otherwise cell_start is empty and members are found by binary
+    search in skeys (for sparse clouds, where a dense grid would not fit in memory).
+    """
+    n = keys.shape[0]
+    if n_cells_dense > 0:
+        cell_start = np.zeros(n_cells_dense + 1, dtype=np.int64)
+        for i in range(n):
+            cell_start[keys[i] + 1] += 1
+        for c in range(n_cells_dense):
+            cell_start[c + 1] += cell_start[c]
+        fill = cell_start[:-1].copy()
+        order = np.empty(n, dtype=np.int64)
+        for i in range(n):
+            c = keys[i]
+            order[fill[c]] = i
+            fill[c] += 1
+        return order, keys[:0].copy(), cell_start
+    order = np.argsort(keys)
+    return order, keys[order], np.zeros(0, dtype=np.int64)
+
+
+@njit(cache=True, inline="always")
+def _cell_range(nkey, skeys, cell_start):
+    if cell_start.shape[0] > 0:
+        return cell_start[nkey], cell_start[nkey + 1]
+    s = _searchsorted_left(skeys, nkey)
+    e = s
+    while e < skeys.shape[0] and skeys[e] == nkey:
+        e += 1
+    return s, e
+
+
+@njit(cache=True)
 def build_rows(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda):
     """Pair rows of the local particles.
 
@@ -85,13 +123,23 @@ def build_rows(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, his
             dmax = diam[i]
     h = dmax + skin
     keys, lo, dims = cell_keys(x, n_total, h)
-    order = np.argsort(keys)
-    skeys = keys[order]
-    # gid -> index lookup for history partners
-    gorder = np.argsort(gid[:n_total])
-    sgid = gid[:n_total][gorder]
+    n_cells = np.int64(1)
+    dense = True
+    for k in range(b):
+        if dims[k] > 4 * n_total + 64 or n_cells * dims[k] > 4 * n_total + 64:
+            dense = False
+            break
+        n_cells *= dims[k]
+    order, skeys, cell_start = _cell_index(keys, n_cells if dense else 0)
+    # gid -> index lookup, needed only for history partners
+    n_hist = hist_offsets[n_local]
+    if n_hist > 0:
+        gorder = np.argsort(gid[:n_total])
+        sgid = gid[:n_total][gorder]
+    else:
+        gorder = np.empty(0, dtype=np.int64)
+        sgid = np.empty(0, dtype=np.int64)
 
-    # neighbour cell offsets in coordinate space
     n_nb = 3 ** b
     offs = np.empty((n_nb, b), dtype=np.int64)
     for m in range(n_nb):
@@ -112,9 +160,7 @@ def build_rows(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, his
     pos = 0
     for i in range(n_local):
         cnt = 0
-        # cell coordinates of i
-        key = keys[i]
-        t = key
+        t = keys[i]
         for k in range(b - 1, -1, -1):
             coord[k] = t % dims[k]
             t //= dims[k]
@@ -129,10 +175,9 @@ def build_rows(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, his
                 nkey = nkey * dims[k] + c
             if not ok:
                 continue
-            s = _searchsorted_left(skeys, nkey)
-            while s < n_total and skeys[s] == nkey:
+            s, e_end = _cell_range(nkey, skeys, cell_start)
+            for s in range(s, e_end):
                 j = order[s]
-                s += 1
                 if j == i:
                     continue
                 r2 = 0.0
@@ -165,25 +210,54 @@ def build_rows(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, his
             tmp_g[cnt] = g
             tmp_l[cnt] = hist_lambda[e]
             cnt += 1
-        # sort by partner gid, merge duplicates (a history partner that is also a candidate)
-        srt = np.argsort(tmp_g[:cnt])
+        # sort the row by partner gid (insertion sort: rows are short), merge duplicates (a
+        # history partner that is also a candidate keeps its lambda)
+        _sort_row(tmp_g, tmp_j, tmp_l, cnt)
         if pos + cnt > cap:
             cap = max(2 * cap, pos + cnt)
             pair_j = _grow_i32(pair_j, cap)
             pair_lambda = _grow_f(pair_lambda, cap)
-        last = np.int64(-1)
         for q in range(cnt):
-            e = srt[q]
-            if q > 0 and tmp_g[e] == last:
-                if tmp_l[e] > pair_lambda[pos - 1]:
-                    pair_lambda[pos - 1] = tmp_l[e]
+            if q > 0 and tmp_g[q] == tmp_g[q - 1]:
+                if tmp_l[q] > pair_lambda[pos - 1]:
+                    pair_lambda[pos - 1] = tmp_l[q]
                 continue
-            last = tmp_g[e]
-            pair_j[pos] = tmp_j[e]
-            pair_lambda[pos] = tmp_l[e]
+            pair_j[pos] = tmp_j[q]
+            pair_lambda[pos] = tmp_l[q]
             pos += 1
         pair_offsets[i + 1] = pos
     return pair_offsets, pair_j[:pos].copy(), pair_lambda[:pos].copy(), missing
+
+
+@njit(cache=True)
+def _sort_row(g, j, lam, n):
+    """Sort g[:n] ascending, permuting j and lam alike (insertion sort; argsort when long)."""
+    if n > 48:
+        o = np.argsort(g[:n])
+        g[:n] = g[:n][o]
+        j[:n] = j[:n][o]
+        lam[:n] = lam[:n][o]
+        return
+    for a in range(1, n):
+        kg = g[a]
+        kj = j[a]
+        kl = lam[a]
+        c = a - 1
+        while c >= 0 and g[c] > kg:
+            g[c + 1] = g[c]
+            j[c + 1] = j[c]
+            lam[c + 1] = lam[c]
+            c -= 1
+        g[c + 1] = kg
+        j[c + 1] = kj
+        lam[c + 1] = kl
+
+
+@njit(cache=True)
+def spatial_order(x, n, h):
+    """A permutation of x[:n] that visits cells of size h in row-major order (cache locality)."""
+    keys, lo, dims = cell_keys(x, n, h)
+    return np.argsort(keys, kind="mergesort")
 
 
 @njit(cache=True)

@@ -153,6 +153,12 @@ class Solver:
                 self.counters["rebalances"] += 1
             x, x_prev, gid, diam, hist_off, hist_gid, hist_lam = self._exchange(
                 x, x_prev, gid, diam, hist_off, hist_gid, hist_lam)
+        # local particles in cell order: neighbours sit close in memory for the step kernel
+        perm = neighbors.spatial_order(x, x.shape[0], self.r_ghost)
+        h_off, h_idx = gather_rows(hist_off, perm)
+        x, x_prev, gid, diam = x[perm], x_prev[perm], gid[perm], diam[perm]
+        hist_off, hist_gid, hist_lam = h_off, hist_gid[h_idx], hist_lam[h_idx]
+        if comm.size > 1:
             ghost_x, ghost_gid, ghost_diam = self._borders(x, gid, diam, hist_gid)
         else:
             ghost_x, ghost_gid, ghost_diam = np.zeros((0, self.dim)), np.zeros(0, np.int64), np.zeros(0)
@@ -207,22 +213,21 @@ class Solver:
         requests = comm.allgather_object(missing)
         if any(len(r) for r in requests):
             # far partners: each owner adds the requested particles to its send lists
-            local_sorted = np.argsort(gid)
-            extra_rank, extra_idx = [], []
+            lookup = np.argsort(gid)
+            sorted_gid = gid[lookup]
+            ranks = [np.repeat(np.arange(comm.size), np.diff(offsets))]
+            rows = [idx]
             for r, req in enumerate(requests):
-                if r == comm.rank or len(req) == 0:
+                if r == comm.rank or len(req) == 0 or n_local == 0:
                     continue
-                pos = np.searchsorted(gid[local_sorted], req)
-                pos = np.minimum(pos, max(n_local - 1, 0))
-                found = (n_local > 0) & (gid[local_sorted][pos] == req) if n_local else np.zeros(len(req), bool)
-                rows = local_sorted[pos[found]]
-                already = set(idx[offsets[r]:offsets[r + 1]].tolist())
-                rows = np.array([i for i in rows.tolist() if i not in already], dtype=np.int64)
-                extra_rank.append(np.full(rows.shape[0], r, dtype=np.int64))
-                extra_idx.append(rows)
+                pos = np.minimum(np.searchsorted(sorted_gid, req), n_local - 1)
+                mine = lookup[pos[sorted_gid[pos] == req]]
+                mine = np.setdiff1d(mine, idx[offsets[r]:offsets[r + 1]])
+                ranks.append(np.full(mine.shape[0], r, dtype=np.int64))
+                rows.append(mine.astype(np.int64))
             self.counters["far_ghosts"] += int(sum(len(r) for r in requests))
-            ranks = np.concatenate([np.repeat(np.arange(comm.size), np.diff(offsets))] + extra_rank)
-            rows = np.concatenate([idx] + extra_idx)
+            ranks = np.concatenate(ranks)
+            rows = np.concatenate(rows)
             o = np.argsort(ranks, kind="stable")
             idx = rows[o]
             offsets = np.zeros(comm.size + 1, dtype=np.int64)
