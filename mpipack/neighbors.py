@@ -101,8 +101,8 @@ def _cell_range(nkey, skeys, cell_start):
     return s, e
 
 
-@njit(cache=True)
-def build_rows(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda):
+@njit(cache=True, inline="always")
+def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda):
     """Pair rows of the local particles.
 
     x (n_total, b) with locals first; gid int64, diam float64 (n_total,);
@@ -113,7 +113,6 @@ def build_rows(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, his
     missing) where missing is the number of history partners not present in x (they must be
     made ghosts before the build; the caller treats missing > 0 as an error).
     """
-    b = x.shape[1]
     pair_offsets = np.zeros(n_local + 1, dtype=np.int64)
     if n_local == 0:
         return pair_offsets, np.empty(0, dtype=np.int32), np.empty(0), 0
@@ -227,6 +226,31 @@ def build_rows(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, his
             pos += 1
         pair_offsets[i + 1] = pos
     return pair_offsets, pair_j[:pos].copy(), pair_lambda[:pos].copy(), missing
+
+
+@njit(cache=True)
+def _build_rows_1(x, n_local, n_total, gid, diam, skin, ho, hg, hl):
+    return _build_rows(1, x, n_local, n_total, gid, diam, skin, ho, hg, hl)
+
+
+@njit(cache=True)
+def _build_rows_2(x, n_local, n_total, gid, diam, skin, ho, hg, hl):
+    return _build_rows(2, x, n_local, n_total, gid, diam, skin, ho, hg, hl)
+
+
+@njit(cache=True)
+def _build_rows_3(x, n_local, n_total, gid, diam, skin, ho, hg, hl):
+    return _build_rows(3, x, n_local, n_total, gid, diam, skin, ho, hg, hl)
+
+
+def build_rows(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda):
+    """Pair rows of the local particles (compiled per dimension; see ``_build_rows``).
+
+    Returns (pair_offsets int64 (n_local+1,), pair_j int32 (n_pairs,), pair_lambda (n_pairs,),
+    missing).
+    """
+    f = (_build_rows_1, _build_rows_2, _build_rows_3)[x.shape[1] - 1]
+    return f(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda)
 
 
 @njit(cache=True)
