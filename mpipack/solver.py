@@ -58,7 +58,7 @@ class Solver:
         self.partition = domain.Partition.whole_space(self.dim)
         self.plan = comm_mod.GhostPlan.empty()
         self.xbar = np.zeros(self.dim)
-        self.counters = {"rebuilds": 0, "rebalances": 0, "far_ghosts": 0}
+        self.counters = {"rebuilds": 0, "rebalances": 0, "far_ghosts": 0, "max_imbalance": 1.0}
         self.last = {}  # last reduced figures
         self._acc = exactsum.new_accumulator(self.dim + 2)
         self._maxima = np.zeros(kernels.N_MAX)
@@ -128,10 +128,11 @@ class Solver:
             "max_displacement": max_disp,
             "max_local": int(g_max[2]),
         }
+        fig["imbalance"] = fig["max_local"] * self.comm.size / self.n
+        self.counters["max_imbalance"] = max(self.counters["max_imbalance"], fig["imbalance"])
         # neighbour rows stay valid while no particle has moved more than skin/2
         if max_disp > 0.5 * self.skin:
-            imbalance = fig["max_local"] * self.comm.size / self.n
-            self.rebuild(rebalance=imbalance > self.scene["neighbor"]["rebalance"])
+            self.rebuild()
         else:
             comm_mod.forward(self.comm, self.plan, st.x, st.n_local)
         self.last = fig
@@ -153,6 +154,14 @@ class Solver:
                 self.counters["rebalances"] += 1
             x, x_prev, gid, diam, hist_off, hist_gid, hist_lam = self._exchange(
                 x, x_prev, gid, diam, hist_off, hist_gid, hist_lam)
+            # migration may have unbalanced the load: check now (one small allreduce, only at
+            # rebuilds) rather than wait for the next rebuild, which may be far away
+            max_local = comm.allreduce(np.array([x.shape[0]], dtype=np.int64), op="max")[0]
+            if not rebalance and max_local * comm.size > self.scene["neighbor"]["rebalance"] * self.n:
+                self.partition = domain.rcb(comm, x, x.shape[0])
+                self.counters["rebalances"] += 1
+                x, x_prev, gid, diam, hist_off, hist_gid, hist_lam = self._exchange(
+                    x, x_prev, gid, diam, hist_off, hist_gid, hist_lam)
         # local particles in cell order: neighbours sit close in memory for the step kernel
         perm = neighbors.spatial_order(x, x.shape[0], self.r_ghost)
         h_off, h_idx = gather_rows(hist_off, perm)
