@@ -1,2 +1,30 @@
 """mpipack: MPI-parallel sphere packing with the damped Arrow-Hurwicz algorithm."""
+
+import hashlib
+import os
+from pathlib import Path
+
 __version__ = "0.1.0"
+
+
+def _numba_cache_dir():
+    """Numba's on-disk cache keyed by a hash of this package's sources.
+
+    numba invalidates a cached function when its own file changes, not when a function it
+    inlines from another module does (kernels inline exactsum.add): a stale cache would then
+    run old code. A cache folder per source hash cannot be stale. Set before numba is
+    imported; a NUMBA_CACHE_DIR chosen by the user is left alone.
+    """
+    here = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for p in sorted(here.glob("*.py")):
+        h.update(p.name.encode())
+        h.update(p.read_bytes())
+    return str(here / "__pycache__" / f"numba-{h.hexdigest()[:16]}")
+
+
+if "NUMBA_CACHE_DIR" not in os.environ:
+    try:
+        os.environ["NUMBA_CACHE_DIR"] = _numba_cache_dir()
+    except OSError:
+        pass

@@ -77,6 +77,13 @@ def run_command(args):
     if scene["n"] < 1:
         _fail(comm, EXIT_INPUT, "key 'n' must be positive")
     out = args.out or scene["output"]["dir"] or os.path.join("mpipack-out", scene["name"])
+    # output locations are checked before any work, so a bad path costs nothing
+    err = None
+    if comm.rank == 0:
+        err = _prepare_outputs(out, args.dump)
+    err = comm.bcast_object(err)
+    if err:
+        _fail(comm, EXIT_INPUT, err)
     try:
         return _run(comm, scene, out, args)
     except SystemExit:
@@ -90,14 +97,28 @@ def run_command(args):
         return EXIT_INTERNAL
 
 
+def _prepare_outputs(out, dump):
+    """Create the output folder (and the dump file's folder); a one-line error or None."""
+    for folder, what in ((out, "--out"), (os.path.dirname(os.path.abspath(dump)) if dump else None, "--dump")):
+        if folder is None:
+            continue
+        if os.path.exists(folder) and not os.path.isdir(folder):
+            return f"{what}: {folder} exists and is not a folder"
+        try:
+            os.makedirs(folder, exist_ok=True)
+        except OSError as e:
+            return f"{what}: cannot create folder {folder}: {e.strerror}"
+        if not os.access(folder, os.W_OK):
+            return f"{what}: folder {folder} is not writable"
+    return None
+
+
 def _run(comm, scene, out, args):
     from . import solver as solver_mod
     rank0 = comm.rank == 0
     m = scene["method"]
     every = scene["output"]["progress_every"]
     show = rank0 and not args.quiet and every > 0
-    if rank0:
-        os.makedirs(out, exist_ok=True)
     if show:
         print(f"mpipack: scene {scene['name']}: {m['name'].upper()}-{m['form']} dim={scene['dim']} "
               f"N={scene['n']} on {comm.size} rank(s); alpha={m['alpha']:g} beta={m['beta']:g} "

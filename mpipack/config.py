@@ -138,7 +138,9 @@ def validate(scene):
     if dim not in (1, 2, 3):
         raise SceneError(f"key 'dim' must be 1, 2 or 3, got {dim}")
     _num(scene, "n", int)
-    _num(scene, "seed", int, allow_zero=True)
+    seed = _num(scene, "seed", int, allow_zero=True)
+    if seed >= 2 ** 63:
+        raise SceneError(f"key 'seed' must be below 2**63, got {seed}")
     d = _num(scene, "particles.diameter")
     dmax = _num(scene, "particles.diameter_max", optional=True)
     if dmax is not None and dmax < d:

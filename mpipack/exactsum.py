@@ -2,7 +2,7 @@
 
 A floating-point sum depends on the order of its terms, and the order depends on how the
 particles are split across ranks. Here every term is first cut, deterministically and
-independently of the others, into three pieces that are integer multiples of fixed powers of
+independently of the others, into four pieces that are integer multiples of fixed powers of
 two ("bins", as in ReproBLAS' indexed sums); the pieces of one bin are then added exactly.
 Sums of integers are associative, so the result is the same for any order and any partition.
 
@@ -15,9 +15,10 @@ so q_k is r_k rounded to a multiple of ulp(M_k) = 2**(E_k - 52). The bins are 41
 which leaves 12 bits of headroom: up to FLUSH_EVERY pieces add exactly in a float64
 accumulator before it is flushed into int64 counters (units of ulp(M_k)) and carried.
 
-Range and resolution: |x| < RANGE = 2**44 (about 1.8e13) is summed; the part of x below
-2**-78 (about 3e-24) is dropped, deterministically. A value outside the range marks the
-accumulator as overflowed, which the solver reports as divergence.
+Range and resolution: |x| < RANGE = 2**85 (about 3.9e25; so positions up to about 6e12 when
+their squares are summed) is summed; the part of x below 2**-78 (about 3e-24) is dropped,
+deterministically. A value outside the range, or NaN/Inf, marks the accumulator as
+overflowed, which the solver reports as numerical trouble.
 
 The accumulator is a small int64 array ``acc[n_quantities, NBINS + 1]``: NBINS counters and one
 overflow flag per quantity. Accumulators from several ranks combine by integer addition
@@ -27,8 +28,8 @@ overflow flag per quantity. Accumulators from several ranks combine by integer a
 import numpy as np
 from numba import njit
 
-NBINS = 3
-_E0 = 56
+NBINS = 4
+_E0 = 97
 _BIN_GAP = 41
 _EXPS = np.array([_E0 - _BIN_GAP * k for k in range(NBINS)], dtype=np.int64)
 _M = np.array([1.5 * 2.0 ** int(e) for e in _EXPS])
@@ -36,8 +37,9 @@ _ULP = np.array([2.0 ** int(e - 52) for e in _EXPS])
 RANGE = 2.0 ** (_E0 - 12)
 FLUSH_EVERY = 2048
 
-M0, M1, M2 = (float(v) for v in _M)
-ULP0, ULP1, ULP2 = (float(v) for v in _ULP)
+M0, M1, M2, M3 = (float(v) for v in _M)
+ULP0, ULP1, ULP2, ULP3 = (float(v) for v in _ULP)
+_CARRY = np.int64(_BIN_GAP)
 
 
 def new_accumulator(n_quantities):
@@ -53,16 +55,19 @@ def add(fbuf, q, x):
     FLUSH_EVERY additions per quantity.
     """
     if not (abs(x) < RANGE):  # also catches NaN
-        fbuf[q, 3] += 1.0
+        fbuf[q, 4] += 1.0
         return
     q0 = (x + M0) - M0
     r = x - q0
     q1 = (r + M1) - M1
     r = r - q1
     q2 = (r + M2) - M2
+    r = r - q2
+    q3 = (r + M3) - M3
     fbuf[q, 0] += q0
     fbuf[q, 1] += q1
     fbuf[q, 2] += q2
+    fbuf[q, 3] += q3
 
 
 @njit(cache=True)
@@ -72,21 +77,21 @@ def flush(fbuf, acc):
         acc[q, 0] += np.int64(fbuf[q, 0] / ULP0)
         acc[q, 1] += np.int64(fbuf[q, 1] / ULP1)
         acc[q, 2] += np.int64(fbuf[q, 2] / ULP2)
-        acc[q, 3] += np.int64(fbuf[q, 3])
-        for k in range(4):
+        acc[q, 3] += np.int64(fbuf[q, 3] / ULP3)
+        acc[q, 4] += np.int64(fbuf[q, 4])
+        for k in range(NBINS + 1):
             fbuf[q, k] = 0.0
-        normalize_row(acc, q)
+        normalize_row(acc[q])
 
 
 @njit(cache=True, inline="always")
-def normalize_row(acc, q):
-    """Carry so that bins 1 and 2 hold values in [0, 2**41); the value is unchanged."""
-    c = acc[q, 2] >> 41
-    acc[q, 2] -= c << 41
-    acc[q, 1] += c
-    c = acc[q, 1] >> 41
-    acc[q, 1] -= c << 41
-    acc[q, 0] += c
+def normalize_row(a):
+    """Carry so that bins 1..NBINS-1 of one accumulator row hold values in [0, 2**41); the
+    value is unchanged."""
+    for k in range(NBINS - 1, 0, -1):
+        c = a[k] >> _CARRY
+        a[k] -= c << _CARRY
+        a[k - 1] += c
 
 
 @njit(cache=True)
@@ -106,16 +111,11 @@ def accumulate(values, acc, q):
 @njit(cache=True)
 def value(acc, q):
     """float64 value of quantity q of a (possibly reduced) accumulator; NaN if it overflowed."""
-    if acc[q, 3] != 0:
+    if acc[q, NBINS] != 0:
         return np.nan
     a = acc[q].copy()
-    c = a[2] >> 41
-    a[2] -= c << 41
-    a[1] += c
-    c = a[1] >> 41
-    a[1] -= c << 41
-    a[0] += c
-    return (float(a[0]) * ULP0 + float(a[1]) * ULP1) + float(a[2]) * ULP2
+    normalize_row(a)
+    return ((float(a[0]) * ULP0 + float(a[1]) * ULP1) + float(a[2]) * ULP2) + float(a[3]) * ULP3
 
 
 def exact_sum(values):

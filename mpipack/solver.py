@@ -112,7 +112,7 @@ class Solver:
         if any(g_acc[q, exactsum.NBINS] != 0 for q in range(b + 2)) or not np.all(np.isfinite(g_max)):
             raise NumericalError(
                 f"non-finite or diverging positions at iteration {st.iteration + 1} "
-                f"(|X| beyond {exactsum.RANGE:.3g} or NaN/Inf); lower alpha/beta or raise c")
+                f"(NaN/Inf, or |X|^2 beyond {exactsum.RANGE:.3g}); lower alpha/beta or raise c")
         self.xbar = np.array([exactsum.value(g_acc, k) for k in range(b)]) / self.n
         dx2 = exactsum.value(g_acc, b)
         xx2 = exactsum.value(g_acc, b + 1)

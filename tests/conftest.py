@@ -1,0 +1,97 @@
+"""Shared helpers: run mpipack (or a test script) under ``mpirun`` with a self-contained env.
+
+The tests do not rely on the caller having sourced tools/env.sh: the environment for every
+subprocess is built here from os.environ plus what Open MPI needs to run as root and with
+more ranks than cores. Every subprocess has a timeout, so a hang fails instead of blocking.
+"""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+TESTS = Path(__file__).resolve().parent
+MPI_SCRIPTS = TESTS / "mpi_scripts"
+
+# generous: a healthy run of any test command takes a few seconds
+TIMEOUT = 300
+
+
+def mpi_env():
+    env = dict(os.environ)
+    env["OMPI_ALLOW_RUN_AS_ROOT"] = "1"
+    env["OMPI_ALLOW_RUN_AS_ROOT_CONFIRM"] = "1"
+    env["OMPI_MCA_rmaps_base_oversubscribe"] = "1"
+    # more ranks than cores: give the core away while waiting instead of busy-polling
+    env.setdefault("OMPI_MCA_mpi_yield_when_idle", "1")
+    env["PYTHONPATH"] = str(REPO) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env.pop("PYTHONSTARTUP", None)
+    return env
+
+
+def mpirun(n, args, cwd, timeout=TIMEOUT):
+    """``mpirun -n n <args>`` with output captured; returns CompletedProcess (never raises on
+    a non-zero exit; raises subprocess.TimeoutExpired on a hang)."""
+    cmd = ["mpirun", "--oversubscribe", "-n", str(n)] + [str(a) for a in args]
+    return subprocess.run(cmd, cwd=str(cwd), env=mpi_env(), capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def describe(proc):
+    """A failure message with the command, exit code and captured output."""
+    cmd = proc.args if isinstance(proc.args, str) else " ".join(map(str, proc.args))
+    return (f"\n$ {cmd}\nexit code {proc.returncode}\n--- stdout ---\n{proc.stdout}"
+            f"\n--- stderr ---\n{proc.stderr}")
+
+
+def mpipack_run(n_ranks, workdir, scene=None, sets=(), dump=False, extra=(), timeout=TIMEOUT,
+                quiet=True):
+    """Run ``mpipack run`` on n_ranks ranks in workdir (output folder workdir/out).
+
+    Returns (proc, summary dict or None, dump dict or None).
+    """
+    workdir = Path(workdir)
+    out = workdir / "out"
+    args = [sys.executable, "-m", "mpipack.cli", "run"]
+    if scene is not None:
+        args.append(scene)
+    for s in sets:
+        args += ["--set", s]
+    args += ["--out", out]
+    if quiet:
+        args.append("--quiet")
+    dump_path = workdir / "final.npz"
+    if dump:
+        args += ["--dump", dump_path]
+    args += list(extra)
+    proc = mpirun(n_ranks, args, cwd=workdir, timeout=timeout)
+    summary = None
+    if (out / "summary.json").exists():
+        summary = json.loads((out / "summary.json").read_text())
+    data = None
+    if dump and dump_path.exists():
+        with np.load(dump_path) as z:
+            data = {k: z[k] for k in z.files}
+    return proc, summary, data
+
+
+@pytest.fixture
+def run_mpipack(tmp_path):
+    """run_mpipack(n_ranks, scene=None, sets=(), dump=False, extra=(), tag=None, timeout=...,
+    quiet=True): mpipack_run in a fresh sub-folder of tmp_path."""
+    counter = {"k": 0}
+
+    def _run(n_ranks, scene=None, sets=(), dump=False, extra=(), tag=None, timeout=TIMEOUT,
+             quiet=True):
+        counter["k"] += 1
+        d = tmp_path / (tag or f"run{counter['k']}-np{n_ranks}")
+        d.mkdir(parents=True, exist_ok=True)
+        return mpipack_run(n_ranks, d, scene=scene, sets=sets, dump=dump, extra=extra,
+                           timeout=timeout, quiet=quiet)
+
+    return _run

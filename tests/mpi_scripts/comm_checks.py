@@ -1,0 +1,100 @@
+"""MPI checks of the communication layer and the RCB partition (run under mpirun -n P).
+
+    python comm_checks.py
+
+reduce_fused (exact integer sums, maxima with NaN winning and Inf kept), exact sums split over
+ranks, allreduce, and the RCB partition of an initial cloud (balanced, every particle inside
+its own box, owners() consistent with the boxes). Exit code 0 = all checks passed.
+"""
+
+import sys
+import traceback
+
+import numpy as np
+
+from mpipack import config, exactsum
+from mpipack.comm import Comm
+from mpipack.solver import Solver
+
+
+def check_reductions(comm):
+    r, P = comm.rank, comm.size
+    sums = np.array([[r, -2 * r], [2 ** 40 + r, 7]], dtype=np.int64)
+    nan_rank = P - 1
+    maxima = np.array([1.5 * r, 0.0, np.nan if r == nan_rank else float(r),
+                       np.inf if r == 0 else 1.0, 1e-300 * (r + 1)])
+    g_sums, g_max = comm.reduce_fused(sums, maxima)
+    tot = sum(range(P))
+    assert g_sums.shape == sums.shape and g_sums.dtype == np.int64
+    assert g_sums.tolist() == [[tot, -2 * tot], [P * 2 ** 40 + tot, 7 * P]], g_sums
+    assert g_max[0] == 1.5 * (P - 1) and g_max[1] == 0.0
+    assert np.isnan(g_max[2]), g_max
+    assert g_max[3] == np.inf
+    assert g_max[4] == 1e-300 * P
+    # inputs untouched
+    assert sums[0, 0] == r and (r == nan_rank) == bool(np.isnan(maxima[2]))
+
+    # exact sums: every rank accumulates its slice of the same array
+    rng = np.random.default_rng(99)
+    v = (10.0 ** rng.uniform(-10, 10, 50_001)) * rng.choice([-1.0, 1.0], 50_001)
+    lo, hi = len(v) * r // P, len(v) * (r + 1) // P
+    acc = exactsum.new_accumulator(2)
+    exactsum.accumulate(np.ascontiguousarray(v[lo:hi]), acc, 1)
+    g, _ = comm.reduce_fused(acc, np.zeros(0))
+    assert exactsum.value(g, 1) == exactsum.exact_sum(v), (exactsum.value(g, 1), exactsum.exact_sum(v))
+    assert exactsum.value(g, 0) == 0.0
+
+    a = comm.allreduce(np.array([r, -r], dtype=np.int64), op="max")
+    assert a.tolist() == [P - 1, 0]
+    a = comm.allreduce(np.array([float(r)]), op="min")
+    assert a.tolist() == [0.0]
+
+
+def check_partition(comm):
+    scene = config.load(None, ["n=301", "stop.eps=0"])
+    s = Solver(scene, comm)
+    s.initialise()
+    st, part = s.state, s.partition
+    n_local = st.n_local
+    counts = comm.allgather_object(n_local)
+    assert sum(counts) == 301
+    assert max(counts) - min(counts) <= 1, counts
+    x = st.x[:n_local]
+    lo, hi = part.lo[comm.rank], part.hi[comm.rank]
+    assert np.all(x >= lo) and np.all(x < hi), "a particle outside its owner's box"
+    assert np.all(part.owners(x, n_local) == comm.rank)
+    # boxes tile space: a random point has exactly one box, the one owners() names
+    rng = np.random.default_rng(5)
+    pts = rng.normal(scale=3.0, size=(2000, s.dim))
+    own = part.owners(pts, pts.shape[0])
+    inside = np.all((pts[:, None, :] >= part.lo[None]) & (pts[:, None, :] < part.hi[None]), axis=2)
+    assert np.all(inside.sum(axis=1) == 1)
+    assert np.array_equal(np.argmax(inside, axis=1), own)
+    # ghosts: every remote particle within d_max + skin of my box is here
+    g = s.gather()
+    g = comm.bcast_object(g)
+    d2 = ((np.clip(g["x"], lo, hi) - g["x"]) ** 2).sum(axis=1)
+    near = set(g["gid"][d2 < s.r_ghost ** 2].tolist()) - set(st.gid[:n_local].tolist())
+    have = set(st.gid[n_local:].tolist())
+    assert near <= have, f"missing ghosts {sorted(near - have)[:5]}"
+
+
+def main():
+    comm = Comm()
+    try:
+        check_reductions(comm)
+        check_partition(comm)
+    except BaseException:
+        traceback.print_exc()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        if comm.size > 1:
+            comm.abort(1)
+        return 1
+    if comm.rank == 0:
+        print("comm: OK", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,108 @@
+"""Scenes: built-ins, overrides, validation (in-process, no MPI)."""
+
+import math
+
+import pytest
+
+from mpipack import config
+
+
+def test_builtin_scenes():
+    assert {"default", "paper-3d", "two-spheres"} <= set(config.builtin_names())
+    d = config.load()
+    assert d["name"] == "default" and d["dim"] == 2 and d["n"] == 2000
+    m = d["method"]
+    assert (m["name"], m["form"], m["alpha"], m["beta"], m["gamma"], m["c"]) == \
+        ("daha", "S", 7.8e-3, 2.8e3, 1.6e-2, 2.0)
+    assert d["stop"]["eps"] == 1e-5
+    p3 = config.load("paper-3d")
+    assert p3["dim"] == 3 and p3["stop"]["eps"] == 0.0 and p3["method"]["gamma"] == 5.6e-2
+    two = config.load("two-spheres")
+    assert two["dim"] == 1 and two["n"] == 2 and two["method"]["form"] == "NS"
+    # no gamma given: (2.10) exactly, gamma = sqrt(alpha beta)
+    assert two["method"]["gamma"] == pytest.approx(math.sqrt(0.3 * 3.0), rel=1e-15)
+    # every key is populated
+    assert set(d) == set(config.DEFAULTS)
+
+
+def test_overrides_and_seed():
+    s = config.load("default", ["n=50", "stop.eps=0", "dim=3", "method.form=NS",
+                                "method.name=aha", "init.kind=lattice",
+                                "particles.diameter_max=1.3", "neighbor.skin=0.5"], seed=9)
+    assert s["n"] == 50 and isinstance(s["n"], int)
+    assert s["stop"]["eps"] == 0.0 and isinstance(s["stop"]["eps"], float)
+    assert s["dim"] == 3 and s["method"]["form"] == "NS" and s["method"]["name"] == "aha"
+    assert s["init"]["kind"] == "lattice" and s["particles"]["diameter_max"] == 1.3
+    assert s["seed"] == 9 and s["neighbor"]["skin"] == 0.5
+    assert config.d_max(s) == 1.3
+    assert config.load("default", ["n=50.0"])["n"] == 50
+    # a later override wins
+    assert config.load("default", ["n=50", "n=60"])["n"] == 60
+
+
+def test_scene_file(tmp_path):
+    f = tmp_path / "mine.toml"
+    f.write_text('dim = 3\nn = 10\n[method]\nform = "NS"\nalpha = 0.1\nbeta = 0.4\n')
+    s = config.load(str(f))
+    assert s["name"] == "mine" and s["dim"] == 3 and s["n"] == 10
+    assert s["method"]["gamma"] == pytest.approx(0.2, rel=1e-15)
+    assert s["stop"] == config.DEFAULTS["stop"]
+
+
+BAD = [
+    ("bogus=1", "bogus"),
+    ("method.alhpa=1", "method.alhpa"),
+    ("stop.eps.x=1", "stop.eps"),
+    ("method=1", "method"),
+    ("n=0", "'n'"),
+    ("n=-3", "'n'"),
+    ("n=2.5", "'n'"),
+    ("n=abc", "'n'"),
+    ("n=true", "'n'"),
+    ("dim=4", "'dim'"),
+    ("dim=0", "'dim'"),
+    ("method.alpha=-1", "method.alpha"),
+    ("method.beta=0", "method.beta"),
+    ("method.beta=nan", "method.beta"),
+    ("method.alpha=inf", "method.alpha"),
+    ("method.c=0", "method.c"),
+    ("method.gamma=-1", "method.gamma"),
+    ("method.name=nap", "method.name"),
+    ("method.form=X", "method.form"),
+    ("particles.diameter=0", "particles.diameter"),
+    ("particles.diameter_max=0.5", "particles.diameter_max"),
+    ("init.kind=grid", "init.kind"),
+    ("init.sigma=0", "init.sigma"),
+    ("stop.eps=-1", "stop.eps"),
+    ("stop.max_iter=-1", "stop.max_iter"),
+    ("neighbor.skin=0", "neighbor.skin"),
+    ("neighbor.rebalance=0.9", "neighbor.rebalance"),
+    ("seed=-1", "seed"),
+    ("name=", "name"),
+    ("output.dir=1", "output.dir"),
+    ("no-equals-sign", "no-equals-sign"),
+]
+
+
+@pytest.mark.parametrize("override,key", BAD, ids=[b[0] for b in BAD])
+def test_bad_override_names_the_key(override, key):
+    with pytest.raises(config.SceneError) as e:
+        config.load("default", [override])
+    msg = str(e.value)
+    assert key in msg, msg
+    assert "\n" not in msg
+
+
+def test_bad_scene_source(tmp_path):
+    with pytest.raises(config.SceneError, match="no-such"):
+        config.load("no-such-scene")
+    with pytest.raises(config.SceneError, match="not found"):
+        config.load(str(tmp_path / "missing.toml"))
+    f = tmp_path / "broken.toml"
+    f.write_text("dim = [\n")
+    with pytest.raises(config.SceneError, match="invalid TOML"):
+        config.load(str(f))
+    g = tmp_path / "typo.toml"
+    g.write_text("[particles]\ndiameter = 1.0\nradius = 0.5\n")
+    with pytest.raises(config.SceneError, match="particles.radius"):
+        config.load(str(g))

@@ -1,0 +1,398 @@
+"""Serial kernels against plain numpy references written from the paper's formulas.
+
+Reference: Degond, Ferreira, Motsch 2017, (2.8) (AHA), (2.10) (DAHA) and its gamma form of
+section 4.3, with W = 1/(2N) sum_{i<j} |X_i - X_j|^2 (3.1) and pairwise diameters
+d_kl = (d_k + d_l)/2. The references loop over the pairs k < l of the whole system and add
+each pair's gradient to both of its spheres (the kernel instead walks one row per sphere).
+"""
+
+import math
+import zlib
+
+import numpy as np
+import pytest
+
+from mpipack import exactsum, kernels, neighbors
+
+# ---------------------------------------------------------------------------------------------
+# reference implementation
+# ---------------------------------------------------------------------------------------------
+
+
+def ref_phi_grad(form, xk, xl, dkl):
+    """phi_kl and grad_{X_k} phi_kl (grad_{X_l} phi_kl is its negative), Definition 2.1."""
+    diff = xk - xl
+    r2 = float(np.dot(diff, diff))
+    if form == "S":
+        return dkl * dkl - r2, -2.0 * diff
+    r = math.sqrt(r2)
+    return dkl - r, -diff / r
+
+
+def ref_step(method, form, x, x_prev, diam, lam_prev, alpha, beta, gamma, c, update_lambda,
+             xbar=None):
+    """One iteration n -> n+1 of AHA (2.8) or DAHA (2.10, gamma form of section 4.3).
+
+    x = X^n, x_prev = X^{n-1} (N, b); lam_prev: symmetric (N, N) matrix of lambda^{n-1}
+    (lambda^n itself when update_lambda is False). Returns (X^{n+1}, lambda^n).
+    """
+    n, b = x.shape
+    if xbar is None:
+        xbar = x.mean(axis=0)
+    lam = lam_prev.copy()
+    pairs = [(k, l) for k in range(n) for l in range(k + 1, n)]
+    phi = {}
+    grad = {}
+    for k, l in pairs:
+        phi[k, l], grad[k, l] = ref_phi_grad(form, x[k], x[l], 0.5 * (diam[k] + diam[l]))
+    if update_lambda:  # (2.10b) / (2.8b): lambda^n = max(0, lambda^{n-1} + beta phi(X^n))
+        for k, l in pairs:
+            lam[k, l] = lam[l, k] = max(0.0, lam_prev[k, l] + beta * phi[k, l])
+    grad_w = x - xbar  # grad_{X_i} W(X) for W of (3.1)
+    s_lam = np.zeros_like(x)  # sum_kl lambda_kl grad_{X_i} phi_kl
+    s_phi_lam = np.zeros_like(x)  # sum_kl phi_kl lambda_kl grad_{X_i} phi_kl
+    for k, l in pairs:
+        g = grad[k, l]
+        s_lam[k] += lam[k, l] * g
+        s_lam[l] -= lam[k, l] * g
+        s_phi_lam[k] += phi[k, l] * lam[k, l] * g
+        s_phi_lam[l] -= phi[k, l] * lam[k, l] * g
+    if method == "aha":
+        x_new = x - alpha * (grad_w + s_lam)
+    else:
+        h = 1.0 + c / 2.0
+        x_new = (2.0 * x - (1.0 - c / 2.0) * x_prev) / h \
+            - alpha ** 2 / h * (grad_w + s_lam) - gamma ** 2 / h * s_phi_lam
+    return x_new, lam
+
+
+def random_cloud(rng, n, dim, polydisperse=True):
+    """Overlapping random spheres: a dense Gaussian cloud."""
+    x = rng.normal(size=(n, dim)) * (0.35 * n ** (1.0 / dim))
+    diam = rng.uniform(0.8, 1.3, size=n) if polydisperse else np.ones(n)
+    return x, diam
+
+
+def random_lambda(rng, form, x, diam, frac=0.8):
+    """Symmetric lambda^{n-1}: random positive values on a random part of the overlapping pairs."""
+    n = x.shape[0]
+    lam = np.zeros((n, n))
+    for k in range(n):
+        for l in range(k + 1, n):
+            phi, _ = ref_phi_grad(form, x[k], x[l], 0.5 * (diam[k] + diam[l]))
+            if phi > 0 and rng.uniform() < frac:
+                lam[k, l] = lam[l, k] = rng.uniform(0.05, 1.0) * (0.5 if form == "S" else 1.0)
+    return lam
+
+
+def rows_complete(n_local, n_total, gid):
+    """Pair rows with every other particle as partner, sorted by partner gid."""
+    offsets = np.zeros(n_local + 1, np.int64)
+    js = []
+    for i in range(n_local):
+        partners = [j for j in range(n_total) if j != i]
+        partners.sort(key=lambda j: gid[j])
+        js.extend(partners)
+        offsets[i + 1] = len(js)
+    return offsets, np.array(js, dtype=np.int32)
+
+
+def run_kernel(form, x, x_prev, diam, offsets, pair_j, pair_lambda, xbar, coeffs, beta,
+               update_lambda, n_local, x_build=None):
+    kern = kernels.multipliers_and_step_s if form == "S" else kernels.multipliers_and_step_ns
+    b = x.shape[1]
+    x_new = np.full_like(x, np.nan)
+    acc = exactsum.new_accumulator(b + 2)
+    maxima = np.zeros(kernels.N_MAX)
+    if x_build is None:
+        x_build = x[:n_local].copy()
+    a1, a2, a3, a4 = coeffs
+    n_active = kern(x, x_prev, x_new, n_local, diam, offsets, pair_j, pair_lambda, xbar,
+                    a1, a2, a3, a4, beta, update_lambda, x_build, acc, maxima)
+    return x_new, acc, maxima, n_active
+
+
+PARAMS = {
+    # DAHA, gamma form (gamma != sqrt(alpha beta)), c != 2 so that X^{n-1} matters
+    "daha-gamma": dict(method="daha", alpha=0.3, beta=1.4, gamma=0.45, c=1.5),
+    # DAHA with c > 2 (negative weight on X^{n-1} flips sign)
+    "daha-c3": dict(method="daha", alpha=0.2, beta=3.0, gamma=math.sqrt(0.6), c=3.0),
+    # AHA (2.8): one-step, no damping, no phi*lambda term
+    "aha": dict(method="aha", alpha=0.05, beta=0.7, gamma=0.0, c=2.0),
+}
+
+
+@pytest.mark.parametrize("update_lambda", [True, False], ids=["update", "first"])
+@pytest.mark.parametrize("pname", list(PARAMS))
+@pytest.mark.parametrize("form", ["S", "NS"])
+@pytest.mark.parametrize("dim", [1, 2, 3])
+def test_kernel_matches_reference(dim, form, pname, update_lambda):
+    p = PARAMS[pname]
+    seed = zlib.crc32(f"{dim}-{form}-{pname}-{update_lambda}".encode())
+    rng = np.random.default_rng(seed)
+    n = 30
+    x, diam = random_cloud(rng, n, dim)
+    x_prev = x + 0.05 * rng.normal(size=x.shape)
+    lam_prev = random_lambda(rng, form, x, diam)
+    assert np.count_nonzero(lam_prev) > 10, "test set-up: want many active pairs"
+    # global ids are a permutation: rows are sorted by gid, not by index
+    gid = rng.permutation(n).astype(np.int64)
+    xbar = x.mean(axis=0) + 0.01 * rng.normal(size=dim)  # the kernel takes Xbar as given
+
+    x_ref, lam_ref = ref_step(p["method"], form, x, x_prev, diam, lam_prev, p["alpha"], p["beta"],
+                              p["gamma"], p["c"], update_lambda, xbar=xbar)
+
+    coeffs = kernels.coefficients(p["method"], p["alpha"], p["beta"], p["gamma"], p["c"])
+    offsets, pair_j = rows_complete(n, n, gid)
+    owner = np.repeat(np.arange(n), np.diff(offsets))
+    pair_lambda = lam_prev[owner, pair_j].copy()
+    x_build = x + 0.1 * rng.normal(size=x.shape)
+    x_new, acc, maxima, n_active = run_kernel(form, x, x_prev, diam, offsets, pair_j, pair_lambda,
+                                              xbar, coeffs, p["beta"], update_lambda, n,
+                                              x_build=x_build)
+
+    assert np.allclose(x_new, x_ref, rtol=1e-12, atol=1e-12), np.abs(x_new - x_ref).max()
+    # (2.10b) lambda^n in every row entry, and both ends of a pair hold the same bits
+    assert np.allclose(pair_lambda, lam_ref[owner, pair_j], rtol=1e-12, atol=1e-12)
+    mirror = {(owner[e], pair_j[e]): pair_lambda[e] for e in range(pair_j.shape[0])}
+    assert all(mirror[i, j] == mirror[j, i] for (i, j) in mirror)
+    if not update_lambda:
+        assert np.array_equal(pair_lambda, lam_prev[owner, pair_j])
+    # active row entries: each lambda^n > 0 pair counted from both ends
+    assert n_active == np.count_nonzero(lam_ref)
+    # exact per-step sums: sum X^{n+1}, sum |X^{n+1} - X^n|^2, sum |X^n|^2
+    for k in range(dim):
+        assert math.isclose(exactsum.value(acc, k), math.fsum(x_ref[:, k]), rel_tol=1e-12,
+                            abs_tol=1e-12)
+    assert math.isclose(exactsum.value(acc, dim), math.fsum(((x_ref - x) ** 2).sum(axis=1)),
+                        rel_tol=1e-10, abs_tol=1e-12)
+    assert math.isclose(exactsum.value(acc, dim + 1), math.fsum((x ** 2).ravel()), rel_tol=1e-14)
+    # maxima: displacement since the build, largest relative overlap at X^n
+    disp2 = ((x_ref - x_build) ** 2).sum(axis=1).max()
+    assert math.isclose(maxima[kernels.MAX_DISP2], disp2, rel_tol=1e-10)
+    r = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(axis=2))
+    dkl = 0.5 * (diam[:, None] + diam[None, :])
+    ov = (dkl - r) / dkl
+    np.fill_diagonal(ov, 0.0)
+    assert math.isclose(maxima[kernels.MAX_OVERLAP], max(ov.max(), 0.0), rel_tol=1e-12)
+
+
+@pytest.mark.parametrize("form", ["S", "NS"])
+@pytest.mark.parametrize("dim", [1, 2, 3])
+def test_kernel_with_ghosts_and_verlet_rows(dim, form):
+    """Rows from build_rows (only partners within d_ij + skin), locals first then ghosts: the
+    local part of X^{n+1} is that of the full system (lambda^{n-1} lives on overlapping pairs
+    only, so the pairs left out of the rows keep lambda = 0)."""
+    p = PARAMS["daha-gamma"]
+    rng = np.random.default_rng(100 + dim + (form == "S"))
+    n, n_local = 40, 25
+    x, diam = random_cloud(rng, n, dim)
+    x_prev = x - 0.03 * rng.normal(size=x.shape)
+    lam_prev = random_lambda(rng, form, x, diam, frac=1.0)
+    gid = rng.permutation(n).astype(np.int64)
+    xbar = x.mean(axis=0)
+    x_ref, lam_ref = ref_step("daha", form, x, x_prev, diam, lam_prev, p["alpha"], p["beta"],
+                              p["gamma"], p["c"], True)
+    empty = (np.zeros(n_local + 1, np.int64), np.empty(0, np.int64), np.empty(0))
+    offsets, pair_j, pair_lambda, missing = neighbors.build_rows(x, n_local, n, gid, diam, 0.3,
+                                                                 *empty)
+    assert missing == 0
+    owner = np.repeat(np.arange(n_local), np.diff(offsets))
+    assert pair_j.shape[0] < n_local * (n - 1), "test set-up: rows should not be complete"
+    pair_lambda[:] = lam_prev[owner, pair_j]
+    assert np.count_nonzero(pair_lambda) == np.count_nonzero(lam_prev[:n_local]), \
+        "every overlapping pair of a local particle must be in its row"
+    coeffs = kernels.coefficients("daha", p["alpha"], p["beta"], p["gamma"], p["c"])
+    x_new, _, _, _ = run_kernel(form, x, x_prev, diam, offsets, pair_j, pair_lambda, xbar,
+                                coeffs, p["beta"], True, n_local)
+    assert np.allclose(x_new[:n_local], x_ref[:n_local], rtol=1e-12, atol=1e-12)
+    assert np.all(np.isnan(x_new[n_local:])), "ghost rows of x_new must not be written"
+    assert np.allclose(pair_lambda, lam_ref[owner, pair_j], rtol=1e-12, atol=1e-12)
+
+
+def test_coefficients_follow_the_paper():
+    alpha, beta, gamma, c = 0.3, 1.4, 0.5, 1.2
+    h = 1 + c / 2
+    a = kernels.coefficients("daha", alpha, beta, gamma, c)
+    assert np.allclose(a, (2 / h, -(1 - c / 2) / h, alpha ** 2 / h, gamma ** 2 / h), rtol=1e-15)
+    # c = 2: the one-step method, X^{n-1} drops out
+    assert kernels.coefficients("daha", alpha, beta, gamma, 2.0)[1] == 0.0
+    assert kernels.coefficients("aha", alpha, beta, gamma, c) == (1.0, 0.0, alpha, 0.0)
+    with pytest.raises(ValueError):
+        kernels.coefficients("nap", alpha, beta, gamma, c)
+
+
+def test_two_step_trajectory_matches_reference():
+    """A few chained DAHA iterations (lambda fresh on the first, updated afterwards)."""
+    p = PARAMS["daha-gamma"]
+    rng = np.random.default_rng(7)
+    n, dim, form = 20, 2, "S"
+    x, diam = random_cloud(rng, n, dim)
+    x_prev = x.copy()
+    gid = np.arange(n, dtype=np.int64)
+    offsets, pair_j = rows_complete(n, n, gid)
+    owner = np.repeat(np.arange(n), np.diff(offsets))
+    pair_lambda = np.zeros(pair_j.shape[0])
+    coeffs = kernels.coefficients("daha", p["alpha"], p["beta"], p["gamma"], p["c"])
+    rx, rxp, rlam = x.copy(), x_prev.copy(), np.zeros((n, n))
+    kx, kxp = x.copy(), x_prev.copy()
+    for it in range(5):
+        rnew, rlam = ref_step("daha", form, rx, rxp, diam, rlam, p["alpha"], p["beta"],
+                              p["gamma"], p["c"], it > 0)
+        knew, _, _, _ = run_kernel(form, kx, kxp, diam, offsets, pair_j, pair_lambda,
+                                   kx.mean(axis=0), coeffs, p["beta"], it > 0, n)
+        rxp, rx = rx, rnew
+        kxp, kx = kx, knew
+        assert np.allclose(kx, rx, rtol=1e-12, atol=1e-12), it
+        assert np.allclose(pair_lambda, rlam[owner, pair_j], rtol=1e-12, atol=1e-12), it
+    assert np.count_nonzero(pair_lambda) > 0
+
+
+# ---------------------------------------------------------------------------------------------
+# exact sums
+# ---------------------------------------------------------------------------------------------
+
+
+def mixed_values(rng, n):
+    mag = 10.0 ** rng.uniform(-12, 12, size=n)
+    return mag * rng.choice([-1.0, 1.0], size=n)
+
+
+def test_exact_sum_is_order_independent_and_accurate():
+    rng = np.random.default_rng(2017)
+    v = mixed_values(rng, 100_000)
+    ref = exactsum.exact_sum(v)
+    # plain float sums of these permutations differ: the order matters without exactsum
+    naive = {float(np.sum(rng.permutation(v))) for _ in range(6)}
+    assert len(naive) > 1
+    for _ in range(6):
+        s = exactsum.exact_sum(rng.permutation(v))
+        assert s == ref and np.float64(s).tobytes() == np.float64(ref).tobytes()
+    assert exactsum.exact_sum(v[::-1]) == ref
+    assert math.isclose(ref, math.fsum(v), rel_tol=1e-15, abs_tol=1e-12)
+
+
+def test_exact_sum_small_values_and_cancellation():
+    rng = np.random.default_rng(5)
+    # tiny values only: resolution 2**-78 is far below them
+    v = rng.uniform(-1e-9, 1e-9, size=50_000)
+    s = exactsum.exact_sum(v)
+    assert math.isclose(s, math.fsum(v), rel_tol=1e-12, abs_tol=1e-20)
+    # exact cancellation of large terms leaves the small ones
+    big = rng.uniform(-1e12, 1e12, size=1000)
+    small = rng.uniform(0, 1e-3, size=1000)
+    w = np.concatenate([big, small, -big])
+    for _ in range(3):
+        t = exactsum.exact_sum(rng.permutation(w))
+        assert math.isclose(t, math.fsum(small), rel_tol=1e-15)
+
+
+def test_exact_sum_partial_accumulators_combine_exactly():
+    """What the MPI reduction does: integer-adding accumulators of arbitrary chunks gives the
+    same bits as the whole array, whatever the split."""
+    rng = np.random.default_rng(11)
+    v = mixed_values(rng, 30_000)
+    whole = exactsum.exact_sum(v)
+    for parts in (2, 3, 7):
+        perm = rng.permutation(v.shape[0])
+        cuts = np.sort(rng.choice(np.arange(1, v.shape[0]), size=parts - 1, replace=False))
+        total = exactsum.new_accumulator(1)
+        for chunk in np.split(v[perm], cuts):
+            acc = exactsum.new_accumulator(1)
+            exactsum.accumulate(np.ascontiguousarray(chunk), acc, 0)
+            total += acc
+        assert exactsum.value(total, 0) == whole
+
+
+def test_exact_sum_out_of_range_is_nan():
+    v = np.array([1.0, 2.0, 2.0 * exactsum.RANGE, 3.0])
+    assert math.isnan(exactsum.exact_sum(v))
+    # squares of positions far from the origin (|X| ~ 5e6 -> 2.5e13) are in range
+    assert exactsum.exact_sum(np.array([2.5e13, 1.0, -2.5e13])) == 1.0
+    assert math.isnan(exactsum.exact_sum(np.array([1.0, np.nan])))
+    assert math.isnan(exactsum.exact_sum(np.array([np.inf])))
+    assert exactsum.exact_sum(np.zeros(0)) == 0.0
+
+
+# ---------------------------------------------------------------------------------------------
+# neighbour rows
+# ---------------------------------------------------------------------------------------------
+
+
+def brute_rows(x, n_local, gid, diam, skin):
+    n = x.shape[0]
+    rows = []
+    for i in range(n_local):
+        r = []
+        for j in range(n):
+            if j == i:
+                continue
+            rc = 0.5 * (diam[i] + diam[j]) + skin
+            if float(np.sum((x[i] - x[j]) ** 2)) < rc * rc:
+                r.append(int(gid[j]))
+        rows.append(sorted(r))
+    return rows
+
+
+def rows_as_gids(offsets, pair_j, gid):
+    return [[int(g) for g in gid[pair_j[offsets[i]:offsets[i + 1]]]]
+            for i in range(offsets.shape[0] - 1)]
+
+
+@pytest.mark.parametrize("dim", [1, 2, 3])
+def test_build_rows_matches_brute_force(dim):
+    rng = np.random.default_rng(40 + dim)
+    n, n_local = 80, 50
+    # a spread-out cloud with a dense core, polydisperse
+    x = np.concatenate([rng.normal(size=(n // 2, dim)),
+                        rng.uniform(-6, 6, size=(n - n // 2, dim))])
+    x = x[rng.permutation(n)]
+    diam = rng.uniform(0.7, 1.4, size=n)
+    gid = (rng.permutation(n) * 3 + 5).astype(np.int64)  # not 0..n-1
+    for skin in (0.0 + 1e-9, 0.3, 1.1):
+        empty = (np.zeros(n_local + 1, np.int64), np.empty(0, np.int64), np.empty(0))
+        off, pj, pl, missing = neighbors.build_rows(x, n_local, n, gid, diam, skin, *empty)
+        assert missing == 0
+        assert off.shape == (n_local + 1,) and off[0] == 0
+        assert pj.dtype == np.int32
+        got = rows_as_gids(off, pj, gid)
+        want = brute_rows(x, n_local, gid, diam, skin)
+        assert got == want, f"skin {skin}"
+        assert np.all(pl == 0.0)
+        assert sum(len(r) for r in want) > 0
+
+
+def test_build_rows_keeps_history():
+    rng = np.random.default_rng(3)
+    dim, n, n_local = 2, 40, 30
+    x = rng.uniform(-5, 5, size=(n, dim))
+    diam = np.full(n, 1.0)
+    gid = np.arange(100, 100 + n, dtype=np.int64)[rng.permutation(n)]
+    skin = 0.3
+    want = brute_rows(x, n_local, gid, diam, skin)
+    # history of particle 0: a far partner (present), a near partner (present, merged), and a
+    # gid that is nowhere (missing)
+    dist = np.sqrt(((x - x[0]) ** 2).sum(axis=1))
+    far = int(np.argmax(dist))
+    assert dist[far] > 1.0 + skin
+    near = [g for g in want[0]]
+    hist = [(int(gid[far]), 0.25)]
+    if near:
+        hist.append((near[0], 0.5))
+    hist.append((99999, 0.75))
+    hist.sort()
+    h_off = np.zeros(n_local + 1, np.int64)
+    h_off[1:] = len(hist)
+    h_gid = np.array([g for g, _ in hist], np.int64)
+    h_lam = np.array([l for _, l in hist])
+    off, pj, pl, missing = neighbors.build_rows(x, n_local, n, gid, diam, skin, h_off, h_gid, h_lam)
+    assert missing == 1
+    got = rows_as_gids(off, pj, gid)
+    assert got[0] == sorted(set(want[0]) | {int(gid[far])})
+    assert got[1:] == want[1:]
+    lam0 = dict(zip(got[0], pl[off[0]:off[1]]))
+    assert lam0[int(gid[far])] == 0.25
+    if near:
+        assert lam0[near[0]] == 0.5
+    assert sum(v > 0 for v in lam0.values()) == len(hist) - 1
+    assert np.all(pl[off[1]:] == 0.0)

@@ -1,0 +1,260 @@
+"""``mpirun -n P mpipack run``: rank-count independence, empty ranks, error exits, the main job.
+
+Every run goes through the real command line (python -m mpipack.cli) under mpirun, with its
+output captured and shown on failure.
+"""
+
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from conftest import MPI_SCRIPTS, TIMEOUT, describe, mpi_env, mpirun
+
+DUMP_KEYS = ("gid", "x", "x_prev", "diam", "pairs_gid", "pairs_lambda")
+
+
+def assert_ok(proc, summary):
+    assert proc.returncode == 0, describe(proc)
+    assert summary is not None, "no summary.json" + describe(proc)
+    assert "Traceback" not in proc.stderr, describe(proc)
+
+
+def assert_bitwise_equal(ref, other, what):
+    assert set(ref) == set(DUMP_KEYS) and set(other) == set(DUMP_KEYS), (sorted(ref), sorted(other))
+    for k in DUMP_KEYS:
+        a, b = ref[k], other[k]
+        assert a.dtype == b.dtype and a.shape == b.shape, (what, k, a.dtype, b.dtype, a.shape, b.shape)
+        if not np.array_equal(a, b):
+            bad = np.argwhere(a != b) if a.shape == b.shape else None
+            pytest.fail(f"{what}: '{k}' differs bitwise at {len(bad)} entries, first {bad[:3].tolist()}; "
+                        f"max |diff| {np.max(np.abs(a.astype(float) - b.astype(float)))}")
+
+
+def brute_force_figures(d):
+    """W (3.1), largest relative overlap (d_ij - r)/d_ij and lambda > 0 pair count from a dump."""
+    x, diam = d["x"], d["diam"]
+    n = x.shape[0]
+    w = 0.0
+    for i in range(n):  # W = 1/(2N) sum_{i<j} |X_i - X_j|^2, row by row to bound memory
+        w += float(((x[i + 1:] - x[i]) ** 2).sum())
+    w /= 2 * n
+    r = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(axis=2))
+    dij = 0.5 * (diam[:, None] + diam[None, :])
+    ov = (dij - r) / dij
+    np.fill_diagonal(ov, -np.inf)
+    return w, max(float(ov.max()), 0.0)
+
+
+def check_dump_consistency(summary, d):
+    n = summary["n"]
+    assert np.array_equal(d["gid"], np.arange(n))
+    assert d["x"].shape == (n, summary["dim"])
+    pg = d["pairs_gid"]
+    assert pg.ndim == 2 and pg.shape[1] == 2 and np.all(pg[:, 0] < pg[:, 1])
+    assert np.all(d["pairs_lambda"] > 0)
+    assert len({tuple(p) for p in pg.tolist()}) == pg.shape[0], "duplicate pairs in the dump"
+    assert summary["active_pairs"] == pg.shape[0]
+    w, ov = brute_force_figures(d)
+    assert summary["W"] == pytest.approx(w, rel=1e-10)
+    assert summary["max_overlap"] == pytest.approx(ov, rel=1e-9, abs=1e-15)
+
+
+# ---------------------------------------------------------------------------------------------
+# bitwise equality across rank counts
+# ---------------------------------------------------------------------------------------------
+
+SCENES = {
+    # the Gaussian start expands: particles cross rank boundaries and rows are rebuilt often
+    "2d-default": (None, ["n=400", "stop.eps=0", "stop.max_iter=300"]),
+    "3d-paper": ("paper-3d", ["n=400", "stop.eps=0", "stop.max_iter=300"]),
+}
+
+
+@pytest.mark.parametrize("name", list(SCENES))
+def test_same_bits_on_1_2_3_ranks(run_mpipack, name):
+    scene, sets = SCENES[name]
+    runs = {}
+    for P in (1, 2, 3):
+        proc, summary, dump = run_mpipack(P, scene, sets, dump=True)
+        assert_ok(proc, summary)
+        assert dump is not None, describe(proc)
+        assert summary["ranks"] == P and summary["iterations"] == 300
+        assert summary["rebuilds"] > 1, summary
+        runs[P] = (summary, dump)
+    s1, d1 = runs[1]
+    check_dump_consistency(s1, d1)
+    assert d1["pairs_gid"].shape[0] > 50, "test set-up: want many contacts at the end"
+    for P in (2, 3):
+        s, d = runs[P]
+        assert_bitwise_equal(d1, d, f"{name}: 1 rank vs {P} ranks")
+        for key in ("W", "max_overlap", "relative_change", "density", "active_pairs", "rebuilds"):
+            assert s[key] == s1[key], (key, P, s[key], s1[key])
+        # particles crossed rank boundaries: pair partners had to be fetched from afar
+        assert s["rebalances"] >= 1 and s["far_ghosts"] > 0, s
+
+
+def test_empty_rank_two_spheres(run_mpipack):
+    """n = 2 on 3 ranks: one rank owns nothing, all the time."""
+    p1, s1, d1 = run_mpipack(1, "two-spheres", [], dump=True)
+    p3, s3, d3 = run_mpipack(3, "two-spheres", [], dump=True)
+    assert_ok(p1, s1)
+    assert_ok(p3, s3)
+    assert s1["converged"] and s3["converged"]
+    assert s3["iterations"] == s1["iterations"]
+    assert_bitwise_equal(d1, d3, "two-spheres: 1 rank vs 3 ranks")
+    assert abs(abs(d3["x"][1, 0] - d3["x"][0, 0]) - 1.0) < 1e-8
+    assert d3["pairs_gid"].tolist() == [[0, 1]]
+    assert abs(d3["pairs_lambda"][0] - 0.5) < 1e-8
+
+
+def test_five_spheres_on_3_ranks(run_mpipack):
+    """n = 5 in 2D, polydisperse, DAHA-NS: converges to a cluster with contacts across ranks."""
+    sets = ["dim=2", "n=5", "particles.diameter_max=1.3", "stop.eps=1e-10"]
+    p1, s1, d1 = run_mpipack(1, "two-spheres", sets, dump=True)
+    p3, s3, d3 = run_mpipack(3, "two-spheres", sets, dump=True)
+    assert_ok(p1, s1)
+    assert_ok(p3, s3)
+    assert s1["converged"] and s3["converged"] and s1["iterations"] == s3["iterations"]
+    assert_bitwise_equal(d1, d3, "5 spheres: 1 rank vs 3 ranks")
+    check_dump_consistency(s3, d3)
+    assert d3["pairs_gid"].shape[0] >= 4, "five spheres in contact need at least 4 contacts"
+    assert s3["max_overlap"] < 1e-6
+    assert len(np.unique(d3["diam"])) == 5 and d3["diam"].min() >= 1.0 and d3["diam"].max() <= 1.3
+
+
+# ---------------------------------------------------------------------------------------------
+# errors: every rank exits with the code, one line naming the key, no traceback
+# ---------------------------------------------------------------------------------------------
+
+BAD_INPUT = [
+    (["--set", "bogus=1"], "bogus"),
+    (["--set", "method.alhpa=0.3"], "method.alhpa"),
+    (["--set", "n=0"], "'n'"),
+    (["--set", "n=abc"], "'n'"),
+    (["--set", "dim=4"], "'dim'"),
+    (["--set", "method.alpha=-1"], "method.alpha"),
+    (["--set", "method.c=0"], "method.c"),
+    (["--set", "particles.diameter=0"], "particles.diameter"),
+    (["--set", "method.form=X"], "method.form"),
+]
+
+
+def error_line(proc):
+    lines = [l for l in proc.stderr.splitlines() if l.startswith("mpipack: error:")]
+    assert len(lines) == 1, "want exactly one 'mpipack: error:' line" + describe(proc)
+    return lines[0]
+
+
+@pytest.mark.parametrize("args,key", BAD_INPUT, ids=[a[1] for a, _ in BAD_INPUT])
+def test_bad_input_exits_2(run_mpipack, args, key):
+    t0 = time.monotonic()
+    proc, summary, _ = run_mpipack(2, None, extra=args, timeout=120)
+    elapsed = time.monotonic() - t0
+    assert proc.returncode == 2, describe(proc)
+    assert key in error_line(proc), describe(proc)
+    assert "Traceback" not in proc.stderr + proc.stdout, describe(proc)
+    assert summary is None
+    assert elapsed < 60, f"bad input took {elapsed:.1f} s to be reported" + describe(proc)
+
+
+def test_bad_scene_file_exits_2(run_mpipack, tmp_path):
+    f = tmp_path / "typo.toml"
+    f.write_text('dim = 2\nn = 10\n[method]\nname = "daha"\nbeta_ = 3.0\n')
+    proc, summary, _ = run_mpipack(2, str(f), timeout=120)
+    assert proc.returncode == 2, describe(proc)
+    assert "method.beta_" in error_line(proc)
+    assert "Traceback" not in proc.stderr
+    proc, _, _ = run_mpipack(2, "no-such-scene", timeout=120)
+    assert proc.returncode == 2, describe(proc)
+    assert "no-such-scene" in error_line(proc)
+
+
+def test_out_of_range_seed_is_bad_input(run_mpipack):
+    proc, _, _ = run_mpipack(2, "two-spheres", extra=["--seed", str(2 ** 64)], timeout=120)
+    assert proc.returncode == 2, describe(proc)
+    assert "seed" in error_line(proc)
+    assert "Traceback" not in proc.stderr
+
+
+def test_divergence_exits_3(run_mpipack):
+    proc, summary, _ = run_mpipack(2, None, ["n=400", "method.alpha=30"], timeout=120)
+    assert proc.returncode == 3, describe(proc)
+    line = error_line(proc)
+    assert "diverging" in line or "NaN" in line, describe(proc)
+    assert "iteration" in line
+    assert "Traceback" not in proc.stderr, describe(proc)
+    assert summary is None
+
+
+def test_not_converged_exits_4(run_mpipack):
+    proc, summary, _ = run_mpipack(2, None, ["n=200", "stop.max_iter=50"], timeout=120)
+    assert proc.returncode == 4, describe(proc)
+    assert summary is not None and summary["converged"] is False and summary["iterations"] == 50
+    assert summary["relative_change"] >= summary["eps"]
+
+
+# ---------------------------------------------------------------------------------------------
+# the main job: the paper's section 4.3 case on 2 ranks
+# ---------------------------------------------------------------------------------------------
+
+
+def test_default_scene_converges_on_2_ranks(run_mpipack):
+    proc, s, d = run_mpipack(2, None, [], dump=True, quiet=False)
+    assert_ok(proc, s)
+    # progress from rank 0 only: one header, one verdict
+    assert proc.stdout.count("mpipack: scene default: DAHA-S dim=2 N=2000 on 2 rank(s)") == 1, describe(proc)
+    assert proc.stdout.count(f"mpipack: converged after {s['iterations']} iterations") == 1, describe(proc)
+    assert s["scene"] == "default" and s["method"] == "daha" and s["form"] == "S"
+    assert s["dim"] == 2 and s["n"] == 2000 and s["ranks"] == 2
+    assert s["converged"] is True, s
+    assert 0 < s["iterations"] < 13000, s  # paper: fewer than 13000 iterations
+    assert s["relative_change"] < 1e-5
+    assert s["max_overlap"] < 1e-2, s
+    # paper, Fig. 8: density about 0.87, below the hexagonal optimum pi / (2 sqrt 3) = 0.907
+    assert 0.80 < s["density"] < 0.907, s
+    assert s["active_pairs"] > 2000  # a packed cloud: well over one contact per sphere
+    assert s["rebuilds"] > 1 and s["far_ghosts"] > 0
+    check_dump_consistency(s, d)
+    # the same converged packing, bit for bit, on one rank
+    p1, s1, d1 = run_mpipack(1, None, [], dump=True)
+    assert_ok(p1, s1)
+    assert s1["iterations"] == s["iterations"] and s1["W"] == s["W"]
+    assert_bitwise_equal(d1, d, "default scene: 1 rank vs 2 ranks")
+
+
+def test_scenes_command():
+    proc = subprocess.run([sys.executable, "-m", "mpipack.cli", "scenes"], env=mpi_env(),
+                          capture_output=True, text=True, timeout=TIMEOUT)
+    assert proc.returncode == 0, describe(proc)
+    assert {"default", "paper-3d", "two-spheres"} <= set(proc.stdout.split()), describe(proc)
+
+
+def test_dump_into_missing_folder(run_mpipack, tmp_path):
+    target = tmp_path / "no" / "such" / "dir" / "final.npz"
+    proc, _, _ = run_mpipack(2, "two-spheres", extra=["--dump", str(target)], timeout=120)
+    assert "Traceback" not in proc.stderr, describe(proc)
+    if proc.returncode == 0:
+        assert target.exists()
+    else:
+        assert proc.returncode == 2 and str(target.parent) in error_line(proc), describe(proc)
+
+
+def test_out_is_a_file(run_mpipack, tmp_path):
+    f = tmp_path / "not-a-folder"
+    f.write_text("x")
+    proc, _, _ = run_mpipack(2, "two-spheres", extra=["--out", str(f)], timeout=120)
+    assert proc.returncode == 2, describe(proc)
+    assert "not-a-folder" in error_line(proc)
+    assert "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("P", [2, 3])
+def test_comm_and_partition(tmp_path, P):
+    """Fused reductions (NaN wins, Inf kept, exact int sums), exact sums over ranks, the RCB
+    boxes and the ghost layer: tests/mpi_scripts/comm_checks.py."""
+    proc = mpirun(P, [sys.executable, MPI_SCRIPTS / "comm_checks.py"], cwd=tmp_path)
+    assert proc.returncode == 0, describe(proc)
+    assert "comm: OK" in proc.stdout, describe(proc)
