@@ -39,9 +39,9 @@ NONSMOOTH = 1
 
 # Layout of the per-rank statistics produced by one step.
 # Exact sums (exactsum accumulator rows): sum X^{n+1} (b rows), sum |X^{n+1}-X^n|^2, sum |X^n|^2.
-# Maxima (float64 >= 0): max |X^{n+1} - X_build|^2, max overlap (d_kl - r)/d_kl at X^n.
+# Maxima (float64 >= 0): max |X^{n+1} - X^n|^2 (the step), max overlap (d_kl - r)/d_kl at X^n.
 # Integer counts: number of row entries with lambda^n > 0 (each pair twice).
-MAX_DISP2 = 0
+MAX_STEP2 = 0
 MAX_OVERLAP = 1
 N_MAX = 2
 
@@ -58,15 +58,16 @@ def coefficients(method, alpha, beta, gamma, c):
 
 @njit(cache=True, inline="always")
 def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j,
-                          pair_lambda, xbar, a1, a2, a3, a4, beta, update_lambda, x_build,
-                          acc, maxima):
+                          pair_lambda, xbar, a1, a2, a3, a4, beta, update_lambda, acc, maxima):
     # form and dim are compile-time constants of each wrapper below: LLVM removes the dead
     # branches and keeps the coordinates in registers (a runtime range(dim) loop does not).
     fbuf = np.zeros((dim + 2, exactsum.NBINS + 1))
+    # c = 2 (and AHA) make the scheme one-step: a2 = 0, and X^{n-1} need not be read at all
+    two_step = a2 != 0.0
     xb0 = xbar[0]
     xb1 = xbar[1] if dim > 1 else 0.0
     xb2 = xbar[2] if dim > 2 else 0.0
-    max_disp2 = 0.0
+    max_step2 = 0.0
     max_overlap = 0.0
     min_ratio2 = 1.0
     n_active = 0
@@ -128,30 +129,27 @@ def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offse
                     f1 -= g * d1
                     f2 -= g * d2
         # (2.10a); also the exact partial sums and the maxima for the fused reduction
-        xn0 = a1 * xi0 + a2 * x_prev[i, 0] - a3 * (xi0 - xb0) - f0
+        xn0 = a1 * xi0 + (a2 * x_prev[i, 0] if two_step else 0.0) - a3 * (xi0 - xb0) - f0
         x_new[i, 0] = xn0
         exactsum.add(fbuf, 0, xn0)
         dx2 = (xn0 - xi0) * (xn0 - xi0)
         xx2 = xi0 * xi0
-        disp2 = (xn0 - x_build[i, 0]) * (xn0 - x_build[i, 0])
         if dim > 1:
-            xn1 = a1 * xi1 + a2 * x_prev[i, 1] - a3 * (xi1 - xb1) - f1
+            xn1 = a1 * xi1 + (a2 * x_prev[i, 1] if two_step else 0.0) - a3 * (xi1 - xb1) - f1
             x_new[i, 1] = xn1
             exactsum.add(fbuf, 1, xn1)
             dx2 += (xn1 - xi1) * (xn1 - xi1)
             xx2 += xi1 * xi1
-            disp2 += (xn1 - x_build[i, 1]) * (xn1 - x_build[i, 1])
         if dim > 2:
-            xn2 = a1 * xi2 + a2 * x_prev[i, 2] - a3 * (xi2 - xb2) - f2
+            xn2 = a1 * xi2 + (a2 * x_prev[i, 2] if two_step else 0.0) - a3 * (xi2 - xb2) - f2
             x_new[i, 2] = xn2
             exactsum.add(fbuf, 2, xn2)
             dx2 += (xn2 - xi2) * (xn2 - xi2)
             xx2 += xi2 * xi2
-            disp2 += (xn2 - x_build[i, 2]) * (xn2 - x_build[i, 2])
         exactsum.add(fbuf, dim, dx2)
         exactsum.add(fbuf, dim + 1, xx2)
-        if disp2 > max_disp2 or disp2 != disp2:
-            max_disp2 = disp2
+        if dx2 > max_step2 or dx2 != dx2:
+            max_step2 = dx2
         since_flush += 1
         if since_flush == exactsum.FLUSH_EVERY:
             exactsum.flush(fbuf, acc)
@@ -159,7 +157,7 @@ def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offse
     exactsum.flush(fbuf, acc)
     if form == SMOOTH:
         max_overlap = 1.0 - np.sqrt(min_ratio2)
-    maxima[MAX_DISP2] = max_disp2
+    maxima[MAX_STEP2] = max_step2
     maxima[MAX_OVERLAP] = max_overlap
     return n_active
 
@@ -167,7 +165,7 @@ def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offse
 _DOC = """(2.10b) then (2.10a) for one form and dimension; see the module docstring.
 
     Shapes: x, x_prev, x_new (n_total, b); diam (n_total,); pair_offsets (n_local+1,);
-    pair_j int32 and pair_lambda float64 (n_pairs,); xbar (b,); x_build (n_local, b);
+    pair_j int32 and pair_lambda float64 (n_pairs,); xbar (b,);
     acc int64 (b+2, exactsum.NBINS+1), added to; maxima float64 (N_MAX,), overwritten.
     Writes x_new[:n_local] and, if update_lambda, pair_lambda. Returns the number of row
     entries with lambda > 0.
@@ -177,33 +175,33 @@ _DOC = """(2.10b) then (2.10a) for one form and dimension; see the module docstr
 # One small wrapper per (form, dim), so that only what a scene uses is compiled (and cached).
 # Written out rather than made by a closure factory: numba caches top-level functions only.
 @njit(cache=True)
-def step_s1(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx):
-    return _multipliers_and_step(SMOOTH, 1, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx)
+def step_s1(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(SMOOTH, 1, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def step_s2(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx):
-    return _multipliers_and_step(SMOOTH, 2, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx)
+def step_s2(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(SMOOTH, 2, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def step_s3(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx):
-    return _multipliers_and_step(SMOOTH, 3, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx)
+def step_s3(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(SMOOTH, 3, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def step_ns1(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx):
-    return _multipliers_and_step(NONSMOOTH, 1, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx)
+def step_ns1(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(NONSMOOTH, 1, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def step_ns2(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx):
-    return _multipliers_and_step(NONSMOOTH, 2, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx)
+def step_ns2(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(NONSMOOTH, 2, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def step_ns3(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx):
-    return _multipliers_and_step(NONSMOOTH, 3, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, xb, acc, mx)
+def step_ns3(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(NONSMOOTH, 3, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 _STEPS = {("S", 1): step_s1, ("S", 2): step_s2, ("S", 3): step_s3,
