@@ -152,8 +152,8 @@ def _run(comm, scene, out, args):
         "loop_seconds": res["loop_seconds"], "setup_seconds": res["setup_seconds"],
         "active_pairs": res["active_pairs"], "rebuilds": res["rebuilds"],
         "rebalances": res["rebalances"], "far_ghosts": res["far_ghosts"],
-        "max_imbalance": res["max_imbalance"],
-        "parameters": {k: m[k] for k in ("alpha", "beta", "gamma", "c")},
+        "max_imbalance": res["max_imbalance"], "inner_iterations": res["inner_iterations"],
+        "parameters": {k: m[k] for k in ("alpha", "beta", "gamma", "c", "l_inner", "eps_inner", "tau")},
         "eps": scene["stop"]["eps"], "max_iter": scene["stop"]["max_iter"], "seed": scene["seed"],
     }
     if args.dump:

@@ -13,7 +13,7 @@ import tomllib
 from importlib import resources
 from pathlib import Path
 
-METHODS = ("daha", "aha")
+METHODS = ("daha", "aha", "nap", "nav")
 FORMS = ("S", "NS")
 INIT_KINDS = ("gaussian", "lattice")
 
@@ -24,7 +24,8 @@ DEFAULTS = {
     "seed": 1,
     "particles": {"diameter": 1.0, "diameter_max": None},
     "init": {"kind": "gaussian", "sigma": 1.0, "spacing": 1.0, "jitter": 0.0},
-    "method": {"name": "daha", "form": "S", "alpha": 7.8e-3, "beta": 2.8e3, "gamma": None, "c": 2.0},
+    "method": {"name": "daha", "form": "S", "alpha": 7.8e-3, "beta": 2.8e3, "gamma": None, "c": 2.0,
+               "l_inner": 10, "eps_inner": 1e-9, "tau": 0.1},
     "stop": {"eps": 1e-5, "max_iter": 100000},
     "neighbor": {"skin": 0.3, "rebalance": 1.2},
     "output": {"progress_every": 0.5, "dir": None},
@@ -159,6 +160,9 @@ def validate(scene):
     alpha = _num(scene, "method.alpha")
     beta = _num(scene, "method.beta")
     _num(scene, "method.c")
+    _num(scene, "method.l_inner", int)
+    _num(scene, "method.eps_inner", allow_zero=True)
+    _num(scene, "method.tau")
     if _num(scene, "method.gamma", allow_zero=True, optional=True) is None:
         m["gamma"] = math.sqrt(alpha * beta)
     _num(scene, "stop.eps", allow_zero=True)

@@ -225,6 +225,167 @@ def multipliers_and_step_ns(x, *args):
     return _STEPS[("NS", x.shape[1])](x, *args)
 
 
+# ---- nested methods: NAP (2.16) and NAV (2.17) ----------------------------------------------
+#
+# Both linearise every constraint about the outer iterate X^p (2.15). With D = Y_i - Y_j for
+# the inner iterate Y and D^p = X^p_i - X^p_j:
+#
+#     S:   phi^p = d_ij^2 + |D^p|^2 - 2 D^p.D,        grad_{Y_i} phi^p = -2 D^p
+#     NS:  phi^p = d_ij - D^p.D / |D^p|,              grad_{Y_i} phi^p = -D^p / |D^p|
+#
+# (swapping i and j negates D and D^p, so phi^p is bitwise symmetric like phi). One inner step,
+# multipliers first as in the DAHA kernel:
+#
+#     lambda^{p,n} = max(0, lambda^{p,n-1} + beta phi^p(Y^{p,n}))
+#     Y_i^{p,n+1} = cy Y_i + cp X^p_i - cw (w_i - Xbar) - cf sum_j lambda_ij grad_{Y_i} phi^p
+#
+#   NAP (2.16a): Y = X^{p,n};  cy = 1, cp = 0, cw = alpha, cf = alpha, w = Y (grad W at Y, Xbar of Y)
+#   NAV (2.17a), written for Y = X^p + tau V (so V = (Y - X^p)/tau):
+#                cy = 1 - alpha, cp = alpha, cw = alpha tau, cf = alpha tau^2, w = X^p (Xbar of X^p)
+#
+# Statistics as in the DAHA kernel: exact sums of Y^{n+1} (b rows), |Y^{n+1}-Y^n|^2, |Y^n|^2; max
+# step^2 and max real overlap at Y^n.
+
+NAP = 0
+NAV = 1
+
+
+def nested_coefficients(method, alpha, tau):
+    """(cy, cp, cw, cf) of the inner update for 'nap' or 'nav'."""
+    if method == "nap":
+        return 1.0, 0.0, alpha, alpha
+    if method == "nav":
+        return 1.0 - alpha, alpha, alpha * tau, alpha * tau * tau
+    raise ValueError(f"not a nested method: {method!r}")
+
+
+@njit(cache=True, inline="always")
+def _nested_step(form, dim, kind, y, x_lin, y_new, n_local, diam, pair_offsets, pair_j,
+                 pair_lambda, xbar, cy, cp, cw, cf, beta, update_lambda, acc, maxima):
+    fbuf = np.zeros((dim + 2, exactsum.NBINS + 1))
+    max_step2 = 0.0
+    max_overlap = 0.0
+    min_ratio2 = 1.0
+    n_active = 0
+    since_flush = 0
+    for i in range(n_local):
+        f = np.zeros(3)
+        for e in range(pair_offsets[i], pair_offsets[i + 1]):
+            j = pair_j[e]
+            r2 = 0.0
+            rp2 = 0.0
+            dot = 0.0
+            for k in range(dim):
+                d = y[i, k] - y[j, k]
+                dp = x_lin[i, k] - x_lin[j, k]
+                r2 += d * d
+                rp2 += dp * dp
+                dot += dp * d
+            dij = 0.5 * (diam[i] + diam[j])
+            rp = 0.0
+            if form == SMOOTH:
+                phi = dij * dij + rp2 - 2.0 * dot
+            else:
+                rp = np.sqrt(rp2)
+                phi = dij - dot / rp if rp > 0.0 else dij
+            lam = pair_lambda[e]
+            if update_lambda:
+                lam = lam + beta * phi
+                if lam < 0.0:
+                    lam = 0.0
+                pair_lambda[e] = lam
+            if r2 < dij * dij:  # real overlap at Y^n, for the metric
+                if r2 < min_ratio2 * (dij * dij):
+                    min_ratio2 = r2 / (dij * dij)
+            if lam > 0.0:
+                n_active += 1
+                if form == SMOOTH:
+                    g = 2.0 * lam
+                    for k in range(dim):
+                        f[k] -= g * (x_lin[i, k] - x_lin[j, k])
+                elif rp > 0.0:
+                    g = lam / rp
+                    for k in range(dim):
+                        f[k] -= g * (x_lin[i, k] - x_lin[j, k])
+        dx2 = 0.0
+        yy2 = 0.0
+        for k in range(dim):
+            yi = y[i, k]
+            w = x_lin[i, k] if kind == NAV else yi
+            yn = cy * yi + cp * x_lin[i, k] - cw * (w - xbar[k]) - cf * f[k]
+            y_new[i, k] = yn
+            exactsum.add(fbuf, k, yn)
+            dx2 += (yn - yi) * (yn - yi)
+            yy2 += yi * yi
+        exactsum.add(fbuf, dim, dx2)
+        exactsum.add(fbuf, dim + 1, yy2)
+        if dx2 > max_step2 or dx2 != dx2:
+            max_step2 = dx2
+        since_flush += 1
+        if since_flush == exactsum.FLUSH_EVERY:
+            exactsum.flush(fbuf, acc)
+            since_flush = 0
+    exactsum.flush(fbuf, acc)
+    maxima[MAX_STEP2] = max_step2
+    maxima[MAX_OVERLAP] = 1.0 - np.sqrt(min_ratio2)
+    return n_active
+
+
+@njit(cache=True)
+def nap_s(y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx):
+    return _nested_step(SMOOTH, y.shape[1], NAP, y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx)
+
+
+@njit(cache=True)
+def nap_ns(y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx):
+    return _nested_step(NONSMOOTH, y.shape[1], NAP, y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx)
+
+
+@njit(cache=True)
+def nav_s(y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx):
+    return _nested_step(SMOOTH, y.shape[1], NAV, y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx)
+
+
+@njit(cache=True)
+def nav_ns(y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx):
+    return _nested_step(NONSMOOTH, y.shape[1], NAV, y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx)
+
+
+_NESTED = {("nap", "S"): nap_s, ("nap", "NS"): nap_ns, ("nav", "S"): nav_s, ("nav", "NS"): nav_ns}
+
+
+def nested_step(method, form):
+    """The compiled inner-step kernel of NAP or NAV for a form.
+
+    Arguments: (y, x_lin, y_new, n_local, diam, pair_offsets, pair_j, pair_lambda, xbar,
+    cy, cp, cw, cf, beta, update_lambda, acc, maxima); shapes as the DAHA kernels, x_lin (n_total, b)
+    the linearisation point X^p (ghost rows too). The nested methods are about the paper's
+    small-N comparisons, so these kernels are written for clarity (runtime dimension loops).
+    """
+    return _NESTED[(method, form)]
+
+
+@njit(cache=True)
+def change_sums(x, x_ref, n_local, acc):
+    """Exact sums of |x_i - x_ref_i|^2 (row 0) and |x_ref_i|^2 (row 1) over local particles."""
+    b = x.shape[1]
+    fbuf = np.zeros((acc.shape[0], exactsum.NBINS + 1))
+    since = 0
+    for i in range(n_local):
+        d2 = 0.0
+        r2 = 0.0
+        for k in range(b):
+            d2 += (x[i, k] - x_ref[i, k]) * (x[i, k] - x_ref[i, k])
+            r2 += x_ref[i, k] * x_ref[i, k]
+        exactsum.add(fbuf, 0, d2)
+        exactsum.add(fbuf, 1, r2)
+        since += 1
+        if since == exactsum.FLUSH_EVERY:
+            exactsum.flush(fbuf, acc)
+            since = 0
+    exactsum.flush(fbuf, acc)
+
+
 @njit(cache=True)
 def local_sums(x, n_local, acc):
     """Exact sums of X (b rows) and |X|^2 (row b) over local particles, added to acc."""

@@ -49,7 +49,14 @@ class Solver:
         self.method = m["name"]
         self.form = m["form"]
         self.beta = float(m["beta"])
-        self.coeffs = kernels.coefficients(self.method, m["alpha"], m["beta"], m["gamma"], m["c"])
+        self.nested = self.method in ("nap", "nav")
+        if self.nested:
+            self.coeffs = kernels.nested_coefficients(self.method, m["alpha"], m["tau"])
+            self._nested_kernel = kernels.nested_step(self.method, self.form)
+        else:
+            self.coeffs = kernels.coefficients(self.method, m["alpha"], m["beta"], m["gamma"], m["c"])
+        # the one-pass kernel steps DAHA/AHA; with zero coefficients it also serves the final
+        # metrics of every method
         self._kernel = kernels.multipliers_and_step(self.form, self.dim)
         self.d_max = config.d_max(scene)
         self.skin = float(scene["neighbor"]["skin"]) * self.d_max
@@ -58,7 +65,8 @@ class Solver:
         self.partition = domain.Partition.whole_space(self.dim)
         self.plan = comm_mod.GhostPlan.empty()
         self.xbar = np.zeros(self.dim)
-        self.counters = {"rebuilds": 0, "rebalances": 0, "far_ghosts": 0, "max_imbalance": 1.0}
+        self.counters = {"rebuilds": 0, "rebalances": 0, "far_ghosts": 0, "max_imbalance": 1.0,
+                         "inner_iterations": 0}
         self.last = {}  # last reduced figures
         self._acc = exactsum.new_accumulator(self.dim + 2)
         self._maxima = np.zeros(kernels.N_MAX)
@@ -74,18 +82,25 @@ class Solver:
         dmax = p["diameter_max"] if p["diameter_max"] is not None else p["diameter"]
         diam = init.diameters(self.scene["seed"], gids, float(p["diameter"]), float(dmax))
         st = self.state
-        st.set_particles(x, x.copy(), gids, diam, np.zeros((0, self.dim)),
-                         np.zeros(0, np.int64), np.zeros(0))
+        local = {"x": x, "x_prev": x.copy(), "gid": gids, "diam": diam}
+        ghost = {"x": np.zeros((0, self.dim)), "gid": np.zeros(0, np.int64), "diam": np.zeros(0)}
+        if self.nested:
+            local["x_lin"] = x.copy()
+            ghost["x_lin"] = np.zeros((0, self.dim))
+        st.set_particles(local, ghost)
         st.pair_offsets = np.zeros(x.shape[0] + 1, dtype=np.int64)
         st.lambda_fresh = True
         st.iteration = 0
         self.rebuild(rebalance=True)
         self.xbar = self._centre_of_mass()
-        # compile (or load from cache) the step kernel now, so the loop's timing excludes it
-        a1, a2, a3, a4 = self.coeffs
+        # compile (or load from cache) the step kernels now, so the loop's timing excludes it
         self._kernel(st.x, st.x_prev, st.x_new, 0, st.diam, st.pair_offsets, st.pair_j,
-                     st.pair_lambda, self.xbar, a1, a2, a3, a4, self.beta, False,
+                     st.pair_lambda, self.xbar, 0.0, 0.0, 0.0, 0.0, self.beta, False,
                      exactsum.new_accumulator(self.dim + 2), np.zeros(kernels.N_MAX))
+        if self.nested:
+            self._nested_kernel(st.x, st.x_lin, st.x_new, 0, st.diam, st.pair_offsets, st.pair_j,
+                                st.pair_lambda, self.xbar, *self.coeffs, self.beta, False,
+                                exactsum.new_accumulator(self.dim + 2), np.zeros(kernels.N_MAX))
 
     def _centre_of_mass(self):
         st = self.state
@@ -94,16 +109,33 @@ class Solver:
         g, _ = self.comm.reduce_fused(acc, np.zeros(0))
         return np.array([exactsum.value(g, k) for k in range(self.dim)]) / self.n
 
-    # ---- one iteration ---------------------------------------------------------------------
+    # ---- one iteration ----------------------------------------------------------------------
     def step(self):
-        """Advance one iteration; returns the reduced figures of this iteration."""
+        """Advance one (outer) iteration; returns the reduced figures of this iteration."""
+        if self.nested:
+            return self._outer_step()
         st = self.state
         a1, a2, a3, a4 = self.coeffs
+        fig = self._advance(lambda acc, update: self._kernel(
+            st.x, st.x_prev, st.x_new, st.n_local, st.diam, st.pair_offsets, st.pair_j,
+            st.pair_lambda, self.xbar, a1, a2, a3, a4, self.beta, update, acc, self._maxima))
+        self.xbar = fig.pop("xbar")
+        st.iteration += 1
+        fig["iteration"] = st.iteration
+        self.last = fig
+        return fig
+
+    def _advance(self, kernel):
+        """One kernel pass and everything after it: the fused reduction, the numerical guard,
+        the rotation X^{n-1}, X^n <- X^n, X^{n+1}, and fresh ghosts (forward or rebuild).
+
+        kernel(acc, update_lambda) runs the pass on the current arrays and returns the number
+        of active row entries. Returns the figures, with "xbar" of the new positions.
+        """
+        st = self.state
         acc = self._acc
         acc[:] = 0
-        n_active = self._kernel(st.x, st.x_prev, st.x_new, st.n_local, st.diam, st.pair_offsets,
-                                st.pair_j, st.pair_lambda, self.xbar, a1, a2, a3, a4, self.beta,
-                                not st.lambda_fresh, acc, self._maxima)
+        n_active = kernel(acc, not st.lambda_fresh)
         st.lambda_fresh = False
         sums = np.append(acc.ravel(), np.int64(n_active))
         maxima = np.append(self._maxima, float(st.n_local))
@@ -114,16 +146,15 @@ class Solver:
             raise NumericalError(
                 f"non-finite or diverging positions at iteration {st.iteration + 1} "
                 f"(NaN/Inf, or |X|^2 beyond {exactsum.RANGE:.3g}); lower alpha/beta or raise c")
-        self.xbar = np.array([exactsum.value(g_acc, k) for k in range(b)]) / self.n
         dx2 = exactsum.value(g_acc, b)
         xx2 = exactsum.value(g_acc, b + 1)
         st.rotate()
-        st.iteration += 1
         rel = math.sqrt(dx2 / xx2) if xx2 > 0 else (0.0 if dx2 == 0 else math.inf)
         max_step = math.sqrt(g_max[kernels.MAX_STEP2])
         fig = {
-            "iteration": st.iteration,
+            "xbar": np.array([exactsum.value(g_acc, k) for k in range(b)]) / self.n,
             "relative_change": rel,
+            "change2": dx2,
             "max_overlap": float(g_max[kernels.MAX_OVERLAP]),
             "active_pairs": int(g_sums[-1]) // 2,
             "max_step": max_step,
@@ -141,51 +172,104 @@ class Solver:
             exact = math.sqrt(self.comm.allreduce(np.array([local]), op="max")[0])
             if exact > 0.5 * self.skin or not math.isfinite(exact):
                 self.rebuild()
-                self.last = fig
                 return fig
             self._disp_bound = exact
         comm_mod.forward(self.comm, self.plan, st.x, st.n_local)
+        return fig
+
+    def _outer_step(self):
+        """One outer iteration p -> p+1 of NAP (2.16) or NAV (2.17).
+
+        The constraints are linearised about X^p (kept in x_lin, ghosts included, and carried
+        through rebuilds). Inner steps run until the inner criterion, (4.1) for NAP:
+        ||X^{p,n+1} - X^{p,n}|| / ||X^{p,n}|| < eps_inner, (4.2) for NAV:
+        ||V^{p,n+1} - V^{p,n}|| / ||X^p|| < eps_inner / tau, or l_inner steps. Then
+        lambda^{p+1} from the last inner iterate, and the outer criterion (4.3) is measured.
+        NAV's inner variable is Y = X^p + tau V; it starts from V^{p,0} = V^p, i.e.
+        Y = X^p + (X^p - X^{p-1}) (V^0 = 0).
+        """
+        st = self.state
+        m = self.scene["method"]
+        n = st.n_local
+        st.x_lin[:] = st.x  # X^p, ghosts are current
+        nav = self.method == "nav"
+        xbar_p = self.xbar.copy()
+        if nav:
+            acc = exactsum.new_accumulator(2)
+            kernels.change_sums(st.x, st.x, n, acc)
+            g, _ = self.comm.reduce_fused(acc, np.zeros(0))
+            norm_p = math.sqrt(exactsum.value(g, 1))
+            st.x[:n] = 2.0 * st.x_lin[:n] - st.x_prev[:n]
+            comm_mod.forward(self.comm, self.plan, st.x, n)
+        cy, cp, cw, cf = self.coeffs
+        inner = 0
+        fig = {}
+        for inner in range(1, int(m["l_inner"]) + 1):
+            fig = self._advance(lambda acc, update: self._nested_kernel(
+                st.x, st.x_lin, st.x_new, st.n_local, st.diam, st.pair_offsets, st.pair_j,
+                st.pair_lambda, xbar_p if nav else self.xbar, cy, cp, cw, cf, self.beta, update,
+                acc, self._maxima))
+            self.xbar = fig.pop("xbar")
+            if nav:
+                rel_inner = math.sqrt(fig["change2"]) / norm_p if norm_p > 0 else 0.0
+            else:
+                rel_inner = fig["relative_change"]
+            if rel_inner < m["eps_inner"]:
+                break
+        self.counters["inner_iterations"] += inner
+        # (2.16b) / (2.17b) for the last inner iterate: lambda^{p+1}; positions are discarded
+        acc = exactsum.new_accumulator(self.dim + 2)
+        self._nested_kernel(st.x, st.x_lin, st.x_new, st.n_local, st.diam, st.pair_offsets,
+                            st.pair_j, st.pair_lambda, self.xbar, cy, cp, cw, cf, self.beta,
+                            not st.lambda_fresh, acc, self._maxima)
+        st.lambda_fresh = True
+        # outer criterion (4.3): ||X^{p+1} - X^p|| / ||X^p||
+        acc = exactsum.new_accumulator(2)
+        kernels.change_sums(st.x, st.x_lin, st.n_local, acc)
+        g, _ = self.comm.reduce_fused(acc, np.zeros(0))
+        d2, p2 = exactsum.value(g, 0), exactsum.value(g, 1)
+        st.x_prev[:st.n_local] = st.x_lin[:st.n_local]  # X^{p}, for NAV's V^{p+1}
+        st.iteration += 1
+        fig["relative_change"] = math.sqrt(d2 / p2) if p2 > 0 else (0.0 if d2 == 0 else math.inf)
+        fig["iteration"] = st.iteration
+        fig["inner_iterations"] = inner
         self.last = fig
         return fig
 
     # ---- rebuild: exchange, (balance), borders, rows -----------------------------------------
     def rebuild(self, rebalance=False):
+        """Exchange (and rebalance), sort locals by cell, borders, pair rows. Collective."""
         st, comm = self.state, self.comm
-        n_local = st.n_local
-        hist_off, hist_gid, hist_lam = neighbors.history(n_local, st.gid, st.pair_offsets,
-                                                         st.pair_j, st.pair_lambda)
-        x = st.x[:n_local].copy()
-        x_prev = st.x_prev[:n_local].copy()
-        gid = st.gid[:n_local].copy()
-        diam = st.diam[:n_local].copy()
+        hist = neighbors.history(st.n_local, st.gid, st.pair_offsets, st.pair_j, st.pair_lambda)
+        part = st.local_fields()
         if comm.size > 1:
             if rebalance:
-                self.partition = domain.rcb(comm, x, n_local)
+                self.partition = domain.rcb(comm, part["x"], part["x"].shape[0])
                 self.counters["rebalances"] += 1
-            x, x_prev, gid, diam, hist_off, hist_gid, hist_lam = self._exchange(
-                x, x_prev, gid, diam, hist_off, hist_gid, hist_lam)
+            part, hist = self._exchange(part, hist)
             # migration may have unbalanced the load: check now (one small allreduce, only at
             # rebuilds) rather than wait for the next rebuild, which may be far away
-            max_local = comm.allreduce(np.array([x.shape[0]], dtype=np.int64), op="max")[0]
+            n_here = part["x"].shape[0]
+            max_local = comm.allreduce(np.array([n_here], dtype=np.int64), op="max")[0]
             if not rebalance and max_local * comm.size > self.scene["neighbor"]["rebalance"] * self.n:
-                self.partition = domain.rcb(comm, x, x.shape[0])
+                self.partition = domain.rcb(comm, part["x"], n_here)
                 self.counters["rebalances"] += 1
-                x, x_prev, gid, diam, hist_off, hist_gid, hist_lam = self._exchange(
-                    x, x_prev, gid, diam, hist_off, hist_gid, hist_lam)
+                part, hist = self._exchange(part, hist)
         # local particles in cell order: neighbours sit close in memory for the step kernel
-        perm = neighbors.spatial_order(x, x.shape[0], self.r_ghost)
-        h_off, h_idx = gather_rows(hist_off, perm)
-        x, x_prev, gid, diam = x[perm], x_prev[perm], gid[perm], diam[perm]
-        hist_off, hist_gid, hist_lam = h_off, hist_gid[h_idx], hist_lam[h_idx]
+        perm = neighbors.spatial_order(part["x"], part["x"].shape[0], self.r_ghost)
+        part = {k: v[perm] for k, v in part.items()}
+        h_off, h_idx = gather_rows(hist[0], perm)
+        hist = (h_off, hist[1][h_idx], hist[2][h_idx])
+        ghost_keys = ("x", "gid", "diam") + (("x_lin",) if "x_lin" in part else ())
         if comm.size > 1:
-            ghost_x, ghost_gid, ghost_diam = self._borders(x, gid, diam, hist_gid)
+            ghost = self._borders(part, ghost_keys, hist[1])
         else:
-            ghost_x, ghost_gid, ghost_diam = np.zeros((0, self.dim)), np.zeros(0, np.int64), np.zeros(0)
+            ghost = {k: part[k][:0] for k in ghost_keys}
         lam_fresh = st.lambda_fresh
-        st.set_particles(x, x_prev, gid, diam, ghost_x, ghost_gid, ghost_diam)
+        st.set_particles(part, ghost)
         st.lambda_fresh = lam_fresh
         st.pair_offsets, st.pair_j, st.pair_lambda, missing = neighbors.build_rows(
-            st.x, st.n_local, st.n_total, st.gid, st.diam, self.skin, hist_off, hist_gid, hist_lam)
+            st.x, st.n_local, st.n_total, st.gid, st.diam, self.skin, *hist)
         if missing:
             raise RuntimeError(f"internal error: {missing} pair partners with lambda > 0 are missing "
                                f"on rank {comm.rank} after the ghost exchange")
@@ -193,10 +277,16 @@ class Solver:
         self._disp_bound = 0.0
         self.counters["rebuilds"] += 1
 
-    def _exchange(self, x, x_prev, gid, diam, hist_off, hist_gid, hist_lam):
-        """Move every particle to the owner of its position; its pair history moves with it."""
+    def _exchange(self, part, hist):
+        """Move every particle to the owner of its position; its pair history moves with it.
+
+        part: dict of per-particle arrays (local rows); hist: (offsets, partner gid, lambda).
+        Returns the new (part, hist).
+        """
         comm = self.comm
-        owners = self.partition.owners(x, x.shape[0])
+        hist_off, hist_gid, hist_lam = hist
+        n = part["x"].shape[0]
+        owners = self.partition.owners(part["x"], n)
         order = np.argsort(owners, kind="stable")
         movers = order[owners[order] != comm.rank]
         stay = np.flatnonzero(owners == comm.rank)
@@ -205,28 +295,31 @@ class Solver:
         h_off, h_idx = gather_rows(hist_off, movers)
         h_counts = np.diff(h_off)
         h_per_rank = np.bincount(dest, weights=h_counts, minlength=comm.size).astype(np.int64)
-        got, _ = comm.alltoallv(
-            {"x": x[movers], "x_prev": x_prev[movers], "gid": gid[movers], "diam": diam[movers],
-             "h_count": h_counts, "h_gid": hist_gid[h_idx], "h_lam": hist_lam[h_idx]},
-            {"x": counts, "x_prev": counts, "gid": counts, "diam": counts, "h_count": counts,
-             "h_gid": h_per_rank, "h_lam": h_per_rank})
+        send = {k: v[movers] for k, v in part.items()}
+        send.update({"h_count": h_counts, "h_gid": hist_gid[h_idx], "h_lam": hist_lam[h_idx]})
+        send_counts = {k: counts for k in part}
+        send_counts.update({"h_count": counts, "h_gid": h_per_rank, "h_lam": h_per_rank})
+        got, _ = comm.alltoallv(send, send_counts)
         s_off, s_idx = gather_rows(hist_off, stay)
         counts_all = np.concatenate([np.diff(s_off), got["h_count"]])
         new_off = np.zeros(counts_all.shape[0] + 1, dtype=np.int64)
         np.cumsum(counts_all, out=new_off[1:])
-        return (np.concatenate([x[stay], got["x"]]), np.concatenate([x_prev[stay], got["x_prev"]]),
-                np.concatenate([gid[stay], got["gid"]]), np.concatenate([diam[stay], got["diam"]]),
-                new_off, np.concatenate([hist_gid[s_idx], got["h_gid"]]),
-                np.concatenate([hist_lam[s_idx], got["h_lam"]]))
+        new_part = {k: np.concatenate([v[stay], got[k]]) for k, v in part.items()}
+        return new_part, (new_off, np.concatenate([hist_gid[s_idx], got["h_gid"]]),
+                          np.concatenate([hist_lam[s_idx], got["h_lam"]]))
 
-    def _borders(self, x, gid, diam, hist_gid):
+    def _borders(self, part, keys, hist_gid):
         """Ghosts: particles within r_ghost of this rank's box, plus any pair-history partner
-        (lambda > 0) that is further away; those are requested from their owners."""
+        (lambda > 0) that is further away; those are requested from their owners.
+
+        Returns a dict of the ghosts' ``keys`` arrays; sets self.plan for ``forward``.
+        """
         comm = self.comm
+        x, gid = part["x"], part["gid"]
         n_local = x.shape[0]
-        part = self.partition
-        offsets, idx = domain.ghost_destinations(x, n_local, comm.rank, part.lo, part.hi, self.r_ghost)
-        fields = {"x": x, "gid": gid, "diam": diam}
+        p = self.partition
+        offsets, idx = domain.ghost_destinations(x, n_local, comm.rank, p.lo, p.hi, self.r_ghost)
+        fields = {k: part[k] for k in keys}
         plan, got = comm_mod.borders(comm, offsets, idx, fields)
         present = np.concatenate([gid, got["gid"]])
         missing = neighbors.missing_partners(present.shape[0], present, hist_gid)
@@ -254,7 +347,7 @@ class Solver:
             np.cumsum(np.bincount(ranks, minlength=comm.size), out=offsets[1:])
             plan, got = comm_mod.borders(comm, offsets, idx, fields)
         self.plan = plan
-        return got["x"], got["gid"], got["diam"]
+        return got
 
     # ---- end of run --------------------------------------------------------------------------
     def finish(self):

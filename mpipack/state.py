@@ -11,6 +11,9 @@ Shapes (n_total = n_local + n_ghost, b = dim):
     pair_offsets (n_local+1,), pair_j int32 (n_pairs,), pair_lambda (n_pairs,):
                            the pair store, one row per local particle, partners in gid order
 
+    x_lin    (n_total, b)  NAP/NAV only: the outer iterate X^p the constraints are linearised
+                           about (ghost rows too); None for DAHA/AHA
+
 ``lambda_fresh`` is True when pair_lambda already holds lambda for the current X (at the start,
 lambda^0; after ``finish``), False when it holds lambda^{n-1} and the next step must first
 update it from X^n.
@@ -38,6 +41,7 @@ class State:
         self.pair_offsets = np.zeros(1, dtype=np.int64)
         self.pair_j = np.zeros(0, dtype=np.int32)
         self.pair_lambda = np.zeros(0)
+        self.x_lin = None  # linearisation point X^p of the nested methods (n_total, b)
         self.lambda_fresh = True
         self.iteration = 0
 
@@ -45,20 +49,32 @@ class State:
     def n_total(self):
         return self.n_local + self.n_ghost
 
-    def set_particles(self, x, x_prev, gid, diam, ghost_x, ghost_gid, ghost_diam):
-        """Replace local and ghost particles (arrays are copied into fresh storage)."""
-        n_local, n_ghost = x.shape[0], ghost_x.shape[0]
+    def set_particles(self, local, ghost):
+        """Replace local and ghost particles by fresh copies.
+
+        local: dict with x, x_prev (n_local, b), gid, diam (n_local,) and, for the nested
+        methods, x_lin (n_local, b); ghost: dict with x (n_ghost, b), gid, diam and x_lin if
+        local has it.
+        """
+        n_local, n_ghost = local["x"].shape[0], ghost["x"].shape[0]
         n = n_local + n_ghost
         self.n_local, self.n_ghost = n_local, n_ghost
-        self.x = np.empty((n, self.dim))
-        self.x[:n_local] = x
-        self.x[n_local:] = ghost_x
-        self.x_prev = np.empty((n, self.dim))
-        self.x_prev[:n_local] = x_prev
-        self.x_prev[n_local:] = ghost_x
+        self.x = np.concatenate([local["x"], ghost["x"]]).reshape(n, self.dim)
+        self.x_prev = np.concatenate([local["x_prev"], ghost["x"]]).reshape(n, self.dim)
         self.x_new = np.empty((n, self.dim))
-        self.gid = np.concatenate([gid, ghost_gid]).astype(np.int64)
-        self.diam = np.concatenate([diam, ghost_diam]).astype(np.float64)
+        self.gid = np.concatenate([local["gid"], ghost["gid"]]).astype(np.int64)
+        self.diam = np.concatenate([local["diam"], ghost["diam"]]).astype(np.float64)
+        if "x_lin" in local:
+            self.x_lin = np.concatenate([local["x_lin"], ghost["x_lin"]]).reshape(n, self.dim)
+
+    def local_fields(self):
+        """Copies of the per-particle arrays that travel with a local particle."""
+        n = self.n_local
+        out = {"x": self.x[:n].copy(), "x_prev": self.x_prev[:n].copy(),
+               "gid": self.gid[:n].copy(), "diam": self.diam[:n].copy()}
+        if self.x_lin is not None:
+            out["x_lin"] = self.x_lin[:n].copy()
+        return out
 
     def rotate(self):
         """After a step: (x_prev, x, x_new) <- (x, x_new, x_prev)."""
