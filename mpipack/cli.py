@@ -35,6 +35,9 @@ def _parser():
     b.add_argument("--iters", type=int, default=None, help="timed iterations (default: about 3 s of work)")
     b.add_argument("--form", default="S", choices=["S", "NS"])
     b.add_argument("--json", default=None, help="append result rows to this JSON-lines file")
+    pp = sub.add_parser("paper", help="re-run the paper's experiments; writes report.md and PNG figures")
+    pp.add_argument("--quick", action="store_true", help="a reduced run (under a minute)")
+    pp.add_argument("--out", default=None, help="output folder (default mpipack-out/paper[-quick])")
     sub.add_parser("scenes", help="list the built-in scenes")
     return p
 
@@ -54,6 +57,9 @@ def main(argv=None):
         for name in config.builtin_names():
             print(name)
         return 0
+    if args.command == "paper":
+        from . import paper
+        return paper.main(args)
     if args.command == "bench":
         from . import bench
         return bench.main(args)
