@@ -162,20 +162,28 @@ class Solver:
         }
         fig["imbalance"] = fig["max_local"] * self.comm.size / self.n
         self.counters["max_imbalance"] = max(self.counters["max_imbalance"], fig["imbalance"])
-        # Pair rows stay valid while no particle has moved more than skin/2 since the build.
-        # The sum of the largest steps bounds that displacement (triangle inequality) without
-        # reading x_build every iteration; only when the bound trips is the exact displacement
-        # measured (one more allreduce), and the rows rebuilt if it really exceeds skin/2.
-        self._disp_bound += max_step
+        self._refresh_ghosts(max_step)
+        return fig
+
+    def _refresh_ghosts(self, max_move):
+        """After local positions moved by at most ``max_move`` (a reduced value): fresh ghosts,
+        by forward, or by a rebuild if the pair rows may have gone stale.
+
+        Pair rows stay valid while no particle has moved more than skin/2 since the build.
+        The sum of the largest moves bounds that displacement (triangle inequality) without
+        reading x_build every iteration; only when the bound trips is the exact displacement
+        measured (one more allreduce), and the rows rebuilt if it really exceeds skin/2.
+        """
+        st = self.state
+        self._disp_bound += max_move
         if self._disp_bound > 0.5 * self.skin:
             local = neighbors.max_displacement2(st.x, st.x_build, st.n_local)
             exact = math.sqrt(self.comm.allreduce(np.array([local]), op="max")[0])
             if exact > 0.5 * self.skin or not math.isfinite(exact):
                 self.rebuild()
-                return fig
+                return
             self._disp_bound = exact
         comm_mod.forward(self.comm, self.plan, st.x, st.n_local)
-        return fig
 
     def _outer_step(self):
         """One outer iteration p -> p+1 of NAP (2.16) or NAV (2.17).
@@ -200,7 +208,9 @@ class Solver:
             g, _ = self.comm.reduce_fused(acc, np.zeros(0))
             norm_p = math.sqrt(exactsum.value(g, 1))
             st.x[:n] = 2.0 * st.x_lin[:n] - st.x_prev[:n]
-            comm_mod.forward(self.comm, self.plan, st.x, n)
+            # the warm start moves every particle by |X^p - X^{p-1}|: it counts for the rows
+            jump2 = neighbors.max_displacement2(st.x, st.x_lin, n)
+            self._refresh_ghosts(math.sqrt(self.comm.allreduce(np.array([jump2]), op="max")[0]))
         cy, cp, cw, cf = self.coeffs
         inner = 0
         fig = {}
