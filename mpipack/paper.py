@@ -164,20 +164,24 @@ def table1(comm, seed_sets):
     return stats
 
 
-def is_valid_packing(r, n, tol=1e-3):
-    """Converged, and really a packing: max overlap below tol d, W near the optimum for N = 7."""
+def is_valid_packing(r, n):
+    """Converged, and really a packing: max overlap below 1e-3 d and W within 1e-3 of the
+    optimum 3 for N = 7; max overlap below 1e-2 d for larger N (at eps = 1e-6 a converging
+    N = 100 run still overlaps by up to about 1e-3 d; a wrong stop overlaps by far more)."""
+    tol = 1e-3 if n == 7 else 1e-2
     if not r["converged"] or r["status"] != "ok" or not (r["max_overlap"] < tol):
         return False
     return abs(r["W"] - 3.0) < 1e-3 if n == 7 else True
 
 
+T2_BUDGET = {7: 20000, 100: 40000}  # iterations (inner iterations for NAP/NAV) per start
 T2_SEARCH = {"alpha": (0.02, 0.1, 0.3), "beta": (0.1, 1.0, 3.0)}
 
 
 def table2(comm, quick):
     """For each method and form, does it converge to a valid packing in 2D for N = 7 and 100."""
     rows = []
-    budget = {7: 20000, 100: 20000 if not quick else 4000}
+    budget = T2_BUDGET if not quick else {7: 20000, 100: 4000}
     seeds = {7: range(1, 6 if quick else 11), 100: range(1, 3 if quick else 4)}
     base = {
         ("AHA", "S"): dict(name="aha", form="S", alpha=0.01, beta=0.01),
@@ -215,7 +219,9 @@ def table2(comm, quick):
             ok = len(rs) == len(seeds[n]) and all(is_valid_packing(r, n) for r in rs)
             fired = sum(r["converged"] for r in rs)
             tried.append({"label": label, "ok": ok, "fired": fired, "runs": len(rs),
-                          "max_ov": float(np.nanmax([r["max_overlap"] for r in rs])),
+                          "diverged": sum(r["status"] == "diverged" for r in rs),
+                          "max_ov": float(max((r["max_overlap"] for r in rs if r["status"] == "ok"),
+                                              default=math.nan)),
                           "T": float(np.mean([r["T"] for r in rs]))})
             if ok:
                 break
@@ -512,9 +518,15 @@ def _report(comm, quick, t1, t2, f3, f5, f6, l2, l3, radii2, prof2, prof2b, radi
                      f"{s['W3']:.1e} | {s['conv']}/{s['m']} |")
     L.append(f"\nT within 20% of the paper or inside the spread: {sum(verdicts)}/{len(verdicts)} cells.\n")
     L.append("## Table 2: convergence to a valid packing (2D)\n")
-    L.append("A cell passes when every start reaches the stopping test (eps = 1e-6) within the budget "
-             "AND the result is a packing: max overlap below 1e-3 d (and |W - 3| < 1e-3 for N = 7). "
-             "The caption parameters are tried first, then a small grid of (alpha, beta).\n")
+    L.append(f"A cell passes when every start ({len(range(1, 6 if quick else 11))} for N = 7, "
+             f"{len(range(1, 3 if quick else 4))} for N = 100) reaches the stopping test (eps = 1e-6) within "
+             f"the budget ({'20000 / 4000' if quick else f'{T2_BUDGET[7]} / {T2_BUDGET[100]}'} iterations for N = 7 / 100, "
+             "inner iterations for NAP/NAV) AND the result is a packing: max overlap below 1e-3 d and "
+             "|W - 3| < 1e-3 for N = 7, max overlap below 1e-2 d for N = 100. "
+             "The caption parameters are tried first (Table 1 for N = 7, Fig. 6 for N = 100; AHA: "
+             "(0.01, 0.01) for S as in Fig. 2 and (0.3, 3) for NS; NAV-S: the NAV-NS values), then a "
+             f"grid alpha in {T2_SEARCH['alpha']} x beta in {T2_SEARCH['beta']}; a parameter set is "
+             "dropped at its first failing start.\n")
     L.append("| method | N | paper | ours | how | tried |")
     L.append("|---|---|---|---|---|---|")
     for r in t2:
@@ -522,20 +534,25 @@ def _report(comm, quick, t1, t2, f3, f5, f6, l2, l3, radii2, prof2, prof2b, radi
         last = r["tried"][-1]
         L.append(f"| {r['method']}-{r['form']} | {r['n']} | {'yes' if r['paper'] else 'no'} | "
                  f"{'yes' if r['ours'] else 'no'} | {how} | {len(r['tried'])} parameter sets; "
-                 f"last: test fired {last['fired']}/{last['runs']}, max overlap {last['max_ov']:.1e} |")
+                 f"last: test fired {last['fired']}/{last['runs']}, diverged {last['diverged']}, "
+                 f"max overlap {last['max_ov']:.1e} |")
     diffs = [r for r in t2 if r["ours"] != r["paper"]]
     if diffs:
         L.append("\nCells that differ from the paper (findings):\n")
         for r in diffs:
             L.append(f"- {r['method']}-{r['form']} N = {r['n']}: paper {'converges' if r['paper'] else 'fails'}, "
                      f"ours {'converges' if r['ours'] else 'fails'}; tried: " +
-                     "; ".join(f"{t['label']}: fired {t['fired']}/{t['runs']}, max overlap {t['max_ov']:.1e}, mean T {t['T']:.0f}"
+                     "; ".join(f"{t['label']}: fired {t['fired']}/{t['runs']}, diverged {t['diverged']}, "
+                               f"max overlap {t['max_ov']:.1e}, mean T {t['T']:.0f}"
                                for t in r["tried"][:4]) + ("; ..." if len(r["tried"]) > 4 else ""))
     L.append("\n## Figures 3-6\n")
     L.append(f"![Fig. 3]({files['fig3']})\n\n![Fig. 4]({files['fig4']})\n\n![Fig. 5]({files['fig5']})\n\n![Fig. 6]({files['fig6']})\n")
     best_c = {f: f3[f][0][int(np.argmin(f3[f][1]))] for f in f3}
-    L.append(f"Fig. 3: the fewest iterations (max over starts) at c = {best_c['NS']:g} (NS) and {best_c['S']:g} (S); "
-             "paper: c about 2 for both. c = 0 is not accepted as input (c must be positive); the smallest c plotted shows the oscillation.\n")
+    at2 = {f: f3[f][1][int(np.argmin(np.abs(np.array(f3[f][0]) - 2.0)))] for f in f3}
+    L.append(f"Fig. 3: the fewest iterations (max over starts) at c = {best_c['NS']:g} (NS, {min(f3['NS'][1])} "
+             f"iterations; {at2['NS']} at c = 2) and c = {best_c['S']:g} (S, {min(f3['S'][1])}; {at2['S']} at c = 2); "
+             "paper: c about 2 for both. Runs stop at 5000 iterations. c = 0 is not accepted as input "
+             "(c must be positive); the smallest c plotted shows the oscillation.\n")
     for name, rs in f6.items():
         conv = sum(r["conv"] for r in rs)
         L.append(f"- Fig. 6, {name}: {conv}/{len(rs)} starts converged, mean T {np.mean([r['T'] for r in rs]):.0f}")
