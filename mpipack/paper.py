@@ -545,6 +545,12 @@ def _report(comm, quick, t1, t2, f3, f5, f6, l2, l3, radii2, prof2, prof2b, radi
                      "; ".join(f"{t['label']}: fired {t['fired']}/{t['runs']}, diverged {t['diverged']}, "
                                f"max overlap {t['max_ov']:.1e}, mean T {t['T']:.0f}"
                                for t in r["tried"][:4]) + ("; ..." if len(r["tried"]) > 4 else ""))
+    if any(t["fired"] and t["max_ov"] > 0.9 for r in t2 for t in r["tried"] if r["form"] == "S"):
+        L.append("\nA smooth-form run whose test fired with max overlap near 1 d stopped with two centres "
+                 "(nearly) on top of each other: grad phi = -2 (X_k - X_l) vanishes there, so neither the "
+                 "multiplier (which keeps growing) nor the linearised constraint can push them apart, and "
+                 "the relative change goes to zero on a configuration that is not a packing. The validity "
+                 "check above is what catches it; the stopping test alone does not.\n")
     L.append("\n## Figures 3-6\n")
     L.append(f"![Fig. 3]({files['fig3']})\n\n![Fig. 4]({files['fig4']})\n\n![Fig. 5]({files['fig5']})\n\n![Fig. 6]({files['fig6']})\n")
     best_c = {f: f3[f][0][int(np.argmin(f3[f][1]))] for f in f3}

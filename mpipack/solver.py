@@ -1,16 +1,19 @@
-"""The iteration loop: DAHA / AHA on a spatially decomposed particle cloud.
+"""The iteration loop on a spatially decomposed particle cloud: DAHA, AHA, NAP, NAV.
 
-One iteration, n -> n+1 (every rank, in lock step):
+One iteration of DAHA / AHA, n -> n+1 (every rank, in lock step):
 
     step        kernels: lambda^n = max(0, lambda^{n-1} + beta phi(X^n))       (2.10b)
                          X^{n+1} from X^n, X^{n-1}, lambda^n, Xbar^n            (2.10a)
     reduce      ONE allreduce: exact sum X^{n+1} (-> Xbar^{n+1}), ||X^{n+1}-X^n||^2, ||X^n||^2,
-                active pair count; max displacement since the rows were built, max overlap,
-                max particles per rank
-    rebuild     if max displacement > skin/2: exchange (migrate with pair history), rebalance
-                when max/mean particles per rank > neighbor.rebalance, borders, pair rows
+                active pair count; largest step, max overlap, max particles per rank
+    rebuild     when particles may have moved more than skin/2 since the rows were built:
+                exchange (migrate with pair history), rebalance when max/mean particles per
+                rank > neighbor.rebalance, borders, pair rows
     or forward  ghost positions X^{n+1} from their owners
     stop        ||X^{n+1} - X^n|| / ||X^n|| < eps   (4.3)
+
+NAP and NAV run the same step/reduce/forward cycle for each inner iteration, with the
+constraints linearised about the outer iterate X^p (see ``_outer_step``).
 
 Every decision (stop, rebuild, rebalance, numerical failure) is taken from allreduced numbers,
 so all ranks take it on the same iteration. Sums are exact (see ``exactsum``), pair sums run in
@@ -364,19 +367,15 @@ class Solver:
         """Bring lambda up to date with the final X (2.10b) and return final figures:
         max overlap, W, packing density about the centre of mass, active pairs."""
         st = self.state
-        if not st.lambda_fresh:
-            # one (2.10b) pass; the step it also computes is discarded
-            acc = exactsum.new_accumulator(self.dim + 2)
-            a1, a2, a3, a4 = self.coeffs
-            self._kernel(st.x, st.x_prev, st.x_new, st.n_local, st.diam, st.pair_offsets,
-                         st.pair_j, st.pair_lambda, self.xbar, a1, a2, a3, a4, self.beta, True,
-                         acc, self._maxima)
-            st.lambda_fresh = True
-        else:
-            acc = exactsum.new_accumulator(self.dim + 2)
-            self._kernel(st.x, st.x_prev, st.x_new, st.n_local, st.diam, st.pair_offsets,
-                         st.pair_j, st.pair_lambda.copy(), self.xbar, 0.0, 0.0, 0.0, 0.0, 0.0,
-                         False, acc, self._maxima)
+        # DAHA/AHA: one (2.10b) pass brings lambda^{n-1} to lambda^n (the step it also computes
+        # is discarded); NAP/NAV end every outer iteration with fresh multipliers. Either way
+        # the pass measures the max overlap.
+        update = not st.lambda_fresh
+        a = self.coeffs if update else (0.0, 0.0, 0.0, 0.0)
+        self._kernel(st.x, st.x_prev, st.x_new, st.n_local, st.diam, st.pair_offsets, st.pair_j,
+                     st.pair_lambda if update else st.pair_lambda.copy(), self.xbar, *a, self.beta,
+                     update, exactsum.new_accumulator(self.dim + 2), self._maxima)
+        st.lambda_fresh = True
         w_acc = exactsum.new_accumulator(1)
         kernels.centred_sums(st.x, st.n_local, self.xbar, w_acc)
         n_active = int(np.count_nonzero(st.pair_lambda > 0))
@@ -421,7 +420,7 @@ class Solver:
                 "pairs_lambda": cat["pl"][keep][po]}
 
 
-def run(scene, comm, on_progress=None, max_seconds=None):
+def run(scene, comm, on_progress=None):
     """Run a scene to convergence or max_iter. Returns (solver, result dict).
 
     on_progress(figures, elapsed) is called on every rank after each iteration (the caller
@@ -446,13 +445,15 @@ def run(scene, comm, on_progress=None, max_seconds=None):
     loop_seconds = time.perf_counter() - t_loop
     final = solver.finish()
     iters = solver.state.iteration
+    # work: particle-iterations of the kernel, inner ones for the nested methods
+    work = solver.n * (solver.counters["inner_iterations"] if solver.nested else iters)
     result = {
         "iterations": iters,
         "converged": converged,
         "relative_change": fig["relative_change"],
         "setup_seconds": t_setup,
         "loop_seconds": loop_seconds,
-        "particle_iterations_per_second": (solver.n * iters / loop_seconds) if loop_seconds > 0 else 0.0,
+        "particle_iterations_per_second": work / loop_seconds if loop_seconds > 0 else 0.0,
         **final,
         **solver.counters,
     }
