@@ -158,6 +158,9 @@ def table1(comm, seed_sets):
             "A": float(np.sum([r["A"] for r in first]) / (len(first) * 7 * a_total)),
             "W3": float(np.mean([r["W"] - 3.0 for r in first])),
             "W3_median": float(np.median([r["W"] - 3.0 for r in first])),
+            # starts that stopped away from the optimum (another local minimum of W)
+            "n_off": int(sum(abs(r["W"] - 3.0) > 1e-3 for r in first)),
+            "W3_opt": float(np.mean([r["W"] - 3.0 for r in first if abs(r["W"] - 3.0) <= 1e-3] or [math.nan])),
             "conv": int(sum(r["conv"] for r in first)), "m": len(first),
             "spread": (float(min(set_means)), float(max(set_means))),
             "max_ov": float(np.nanmax([r["ov"] for r in first])),
@@ -524,9 +527,11 @@ def _report(comm, quick, t1, t2, f3, f5, f6, l2, l3, radii2, prof2, prof2b, radi
                 w_txt = "A " + ("yes" if a_ok else "NO") + "; W: paper not at the optimum"
                 order_checks.append(a_ok)
             else:
-                w_ok = abs(order(s["W3"]) - order(w_paper)) <= 1
+                w_ok = abs(order(s["W3_opt"]) - order(w_paper)) <= 1
                 w_txt = f"A {'yes' if a_ok else 'NO'}, W {'yes' if w_ok else 'NO'}"
                 order_checks.append(a_ok and w_ok)
+            if s["n_off"]:
+                w_txt += f" ({s['n_off']} start(s) away from the optimum; W compared over the others: {s['W3_opt']:.1e})"
             L.append(f"| {name} | {EPS_T1[k][0]:g} | {tp} | {s['T']:.1f} [{s['outer']:.1f}] | {lo:.0f}-{hi:.0f} | "
                      f"{'yes' if ok else 'NO'} | {PAPER_VAR[name][k]:.3g} | {s['var']:.3g} | "
                      f"{_fmt_order(PAPER_A[name][k])} | {s['A']:.1e} | {_fmt_order(PAPER_W[name][k])} | "
@@ -534,7 +539,11 @@ def _report(comm, quick, t1, t2, f3, f5, f6, l2, l3, radii2, prof2, prof2b, radi
     L.append(f"\nT within 20% of the paper or inside the spread: {sum(verdicts)}/{len(verdicts)} cells. "
              f"Orders of A and W - 3 within one decade (W where the paper stopped at the optimum): "
              f"{sum(order_checks)}/{len(order_checks)} cells. A is Definition 4.1 literally: the overlap "
-             "areas of all pairs at the stop, summed over the starts, over m N A_total.\n")
+             "areas of all pairs at the stop, summed over the starts, over m N A_total. Where some "
+             "starts stop at another local minimum (|W - 3| > 1e-3; the paper's NAV-NS rows at "
+             "1e-4 and 1e-6 show the same), the orders are compared over the starts that reached "
+             "the optimum. NAP-S ends 2 decades closer to W = 3 than the paper reports at "
+             "eps = 1e-6 and 1e-8 while its A agrees: why the paper's NAP-S W is further off is not known.\n")
     L.append("## Table 2: convergence to a valid packing (2D)\n")
     L.append(f"A cell passes when every start ({len(range(1, 6 if quick else 11))} for N = 7, "
              f"{len(range(1, 3 if quick else 4))} for N = 100) reaches the stopping test (eps = 1e-6) within "
