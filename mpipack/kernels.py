@@ -268,8 +268,9 @@ def _nested_step(form, dim, kind, y, x_lin, y_new, n_local, diam, pair_offsets, 
     min_ratio2 = 1.0
     n_active = 0
     since_flush = 0
+    f = np.zeros(dim)
     for i in range(n_local):
-        f = np.zeros(3)
+        f[:] = 0.0
         for e in range(pair_offsets[i], pair_offsets[i + 1]):
             j = pair_j[e]
             r2 = 0.0
