@@ -146,6 +146,8 @@ def _run(comm, scene, out, args):
         solver, res = solver_mod.run(scene, comm, on_progress=progress)
     except solver_mod.NumericalError as e:
         _fail(comm, EXIT_NUMERICAL, str(e))
+    except solver_mod.TooDenseError as e:
+        _fail(comm, EXIT_INPUT, str(e))
     wall = time.perf_counter() - t0
     summary = {
         "scene": scene["name"], "method": m["name"], "form": m["form"], "dim": scene["dim"],

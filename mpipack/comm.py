@@ -43,6 +43,12 @@ class Comm:
         self.mpi = mpi_comm if mpi_comm is not None else MPI.COMM_WORLD
         self.rank = self.mpi.Get_rank()
         self.size = self.mpi.Get_size()
+        if self.size == 1:
+            self.ranks_per_node = 1
+        else:
+            node = self.mpi.Split_type(MPI.COMM_TYPE_SHARED)
+            self.ranks_per_node = node.Get_size()
+            node.Free()
 
     # ---- reductions ------------------------------------------------------------------------
     def reduce_fused(self, sums, maxima):

@@ -27,7 +27,7 @@ DEFAULTS = {
     "method": {"name": "daha", "form": "S", "alpha": 7.8e-3, "beta": 2.8e3, "gamma": None, "c": 2.0,
                "l_inner": 10, "eps_inner": 1e-9, "tau": 0.1},
     "stop": {"eps": 1e-5, "max_iter": 100000},
-    "neighbor": {"skin": 0.3, "rebalance": 1.2},
+    "neighbor": {"skin": 0.3, "rebalance": 1.2, "max_pair_gib": None},
     "output": {"progress_every": 0.5, "dir": None},
 }
 
@@ -168,6 +168,7 @@ def validate(scene):
     _num(scene, "stop.eps", allow_zero=True)
     _num(scene, "stop.max_iter", int, allow_zero=True)
     _num(scene, "neighbor.skin")
+    _num(scene, "neighbor.max_pair_gib", optional=True)
     reb = _num(scene, "neighbor.rebalance")
     if reb < 1:
         raise SceneError(f"key 'neighbor.rebalance' must be >= 1 (max/mean particles per rank), got {reb}")

@@ -102,7 +102,8 @@ def _cell_range(nkey, skeys, cell_start):
 
 
 @njit(cache=True, inline="always")
-def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda):
+def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda,
+                max_entries):
     """Pair rows of the local particles.
 
     x (n_total, b) with locals first; gid int64, diam float64 (n_total,);
@@ -111,7 +112,9 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
 
     Returns (pair_offsets int64 (n_local+1,), pair_j int32 (n_pairs,), pair_lambda (n_pairs,),
     missing) where missing is the number of history partners not present in x (they must be
-    made ghosts before the build; the caller treats missing > 0 as an error).
+    made ghosts before the build; the caller treats missing > 0 as an error). If the rows would
+    hold more than max_entries entries the build stops early and missing is -1: a start so
+    dense that the rows would not fit in memory is reported, not attempted.
     """
     pair_offsets = np.zeros(n_local + 1, dtype=np.int64)
     if n_local == 0:
@@ -147,7 +150,7 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
             offs[m, k] = t % 3 - 1
             t //= 3
 
-    cap = max(16, n_local * 8)
+    cap = min(max(16, n_local * 8), max(16, max_entries))
     pair_j = np.empty(cap, dtype=np.int32)
     pair_lambda = np.empty(cap)
     tmp_cap = 64
@@ -212,8 +215,10 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
         # sort the row by partner gid (insertion sort: rows are short), merge duplicates (a
         # history partner that is also a candidate keeps its lambda)
         _sort_row(tmp_g, tmp_j, tmp_l, cnt)
+        if pos + cnt > max_entries:
+            return pair_offsets, pair_j[:0].copy(), pair_lambda[:0].copy(), -1
         if pos + cnt > cap:
-            cap = max(2 * cap, pos + cnt)
+            cap = min(max(2 * cap, pos + cnt), max_entries)
             pair_j = _grow_i32(pair_j, cap)
             pair_lambda = _grow_f(pair_lambda, cap)
         for q in range(cnt):
@@ -229,28 +234,30 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
 
 
 @njit(cache=True)
-def _build_rows_1(x, n_local, n_total, gid, diam, skin, ho, hg, hl):
-    return _build_rows(1, x, n_local, n_total, gid, diam, skin, ho, hg, hl)
+def _build_rows_1(x, n_local, n_total, gid, diam, skin, ho, hg, hl, max_entries):
+    return _build_rows(1, x, n_local, n_total, gid, diam, skin, ho, hg, hl, max_entries)
 
 
 @njit(cache=True)
-def _build_rows_2(x, n_local, n_total, gid, diam, skin, ho, hg, hl):
-    return _build_rows(2, x, n_local, n_total, gid, diam, skin, ho, hg, hl)
+def _build_rows_2(x, n_local, n_total, gid, diam, skin, ho, hg, hl, max_entries):
+    return _build_rows(2, x, n_local, n_total, gid, diam, skin, ho, hg, hl, max_entries)
 
 
 @njit(cache=True)
-def _build_rows_3(x, n_local, n_total, gid, diam, skin, ho, hg, hl):
-    return _build_rows(3, x, n_local, n_total, gid, diam, skin, ho, hg, hl)
+def _build_rows_3(x, n_local, n_total, gid, diam, skin, ho, hg, hl, max_entries):
+    return _build_rows(3, x, n_local, n_total, gid, diam, skin, ho, hg, hl, max_entries)
 
 
-def build_rows(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda):
+def build_rows(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda,
+               max_entries=2 ** 62):
     """Pair rows of the local particles (compiled per dimension; see ``_build_rows``).
 
     Returns (pair_offsets int64 (n_local+1,), pair_j int32 (n_pairs,), pair_lambda (n_pairs,),
-    missing).
+    missing); missing = -1 when the rows would exceed max_entries entries.
     """
     f = (_build_rows_1, _build_rows_2, _build_rows_3)[x.shape[1] - 1]
-    return f(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda)
+    return f(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda,
+             np.int64(max_entries))
 
 
 @njit(cache=True)

@@ -40,6 +40,25 @@ class NumericalError(RuntimeError):
     """NaN, Inf or divergence in the state."""
 
 
+class TooDenseError(RuntimeError):
+    """The pair rows of the current configuration would not fit in memory."""
+
+
+# bytes per pair-row entry at the peak of a build (entry 12 B, growth copies, temporaries)
+_BYTES_PER_ENTRY_PEAK = 40
+
+
+def _available_memory_bytes():
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 2 ** 40
+
+
 class Solver:
     """Owns the state of one rank and advances it. ``comm`` is a ``comm.Comm``."""
 
@@ -74,6 +93,11 @@ class Solver:
         self._acc = exactsum.new_accumulator(self.dim + 2)
         self._maxima = np.zeros(kernels.N_MAX)
         self._disp_bound = 0.0  # upper bound of the displacement since the rows were built
+        # pair-row budget of this rank: neighbor.max_pair_gib, or its share of the node's
+        # available memory (under a batch system's memory limit, set the key)
+        gib = scene["neighbor"]["max_pair_gib"]
+        budget = gib * 2 ** 30 if gib is not None else _available_memory_bytes() / comm.ranks_per_node
+        self._max_entries = int(budget / _BYTES_PER_ENTRY_PEAK)
 
     # ---- set-up ----------------------------------------------------------------------------
     def initialise(self):
@@ -282,7 +306,15 @@ class Solver:
         st.set_particles(part, ghost)
         st.lambda_fresh = lam_fresh
         st.pair_offsets, st.pair_j, st.pair_lambda, missing = neighbors.build_rows(
-            st.x, st.n_local, st.n_total, st.gid, st.diam, self.skin, *hist)
+            st.x, st.n_local, st.n_total, st.gid, st.diam, self.skin, *hist,
+            max_entries=self._max_entries)
+        too_dense = self.comm.allreduce(np.array([1 if missing < 0 else 0]), op="max")[0]
+        if too_dense:
+            raise TooDenseError(
+                f"the configuration is too dense for memory: the pair rows of {self.n} spheres "
+                f"would need more than {self._max_entries * _BYTES_PER_ENTRY_PEAK / 2**30:.1f} GiB "
+                f"on a rank; spread the start (raise init.sigma, now {self.scene['init']['sigma']:g}), "
+                f"use init.kind = \"lattice\", or run on more nodes (limit: neighbor.max_pair_gib)")
         if missing:
             raise RuntimeError(f"internal error: {missing} pair partners with lambda > 0 are missing "
                                f"on rank {comm.rank} after the ghost exchange")

@@ -258,3 +258,19 @@ def test_comm_and_partition(tmp_path, P):
     proc = mpirun(P, [sys.executable, MPI_SCRIPTS / "comm_checks.py"], cwd=tmp_path)
     assert proc.returncode == 0, describe(proc)
     assert "comm: OK" in proc.stdout, describe(proc)
+
+
+def test_too_dense_start_is_reported_not_killed(run_mpipack):
+    """A Gaussian start far too dense for the pair-row memory budget stops collectively with
+    exit 2 and a one-line reason, instead of being killed by the kernel's OOM killer."""
+    proc, summary, _ = run_mpipack(2, None, ["n=20000", "neighbor.max_pair_gib=0.01"], timeout=120)
+    assert proc.returncode == 2, describe(proc)
+    line = error_line(proc)
+    assert "too dense" in line and "init.sigma" in line and "max_pair_gib" in line, describe(proc)
+    assert "Traceback" not in proc.stderr
+    assert summary is None
+    # the same budget is plenty for a sparse enough start of the same size
+    proc, summary, _ = run_mpipack(2, None, ["n=20000", "neighbor.max_pair_gib=0.01", "init.sigma=60",
+                                             "stop.max_iter=5", "stop.eps=0"], timeout=120)
+    assert proc.returncode == 0, describe(proc)
+    assert summary["iterations"] == 5
