@@ -18,6 +18,9 @@ REPO = Path(__file__).resolve().parents[1]
 TESTS = Path(__file__).resolve().parent
 MPI_SCRIPTS = TESTS / "mpi_scripts"
 
+# arrays of an ``mpipack run --dump`` file
+DUMP_KEYS = ("gid", "x", "x_prev", "diam", "pairs_gid", "pairs_lambda")
+
 # generous: a healthy run of any test command takes a few seconds
 TIMEOUT = 300
 
@@ -95,3 +98,14 @@ def run_mpipack(tmp_path):
                            timeout=timeout, quiet=quiet)
 
     return _run
+
+
+def assert_bitwise_equal(ref, other, what):
+    assert set(ref) == set(DUMP_KEYS) and set(other) == set(DUMP_KEYS), (sorted(ref), sorted(other))
+    for k in DUMP_KEYS:
+        a, b = ref[k], other[k]
+        assert a.dtype == b.dtype and a.shape == b.shape, (what, k, a.dtype, b.dtype, a.shape, b.shape)
+        if not np.array_equal(a, b):
+            bad = np.argwhere(a != b) if a.shape == b.shape else None
+            pytest.fail(f"{what}: '{k}' differs bitwise at {len(bad)} entries, first {bad[:3].tolist()}; "
+                        f"max |diff| {np.max(np.abs(a.astype(float) - b.astype(float)))}")

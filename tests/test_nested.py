@@ -27,11 +27,10 @@ import zlib
 import numpy as np
 import pytest
 
-from conftest import describe, mpipack_run
+from conftest import assert_bitwise_equal, describe, mpipack_run
 from mpipack import config, exactsum, kernels, neighbors, solver
 from mpipack.comm import Comm
 
-DUMP_KEYS = ("gid", "x", "x_prev", "diam", "pairs_gid", "pairs_lambda")
 RUN_TIMEOUT = 180  # seconds, per mpirun; healthy runs below take a few seconds
 
 
@@ -466,18 +465,6 @@ def test_nap_ns_one_outer_iteration_on_3_ranks(tmp_path):
 # ---------------------------------------------------------------------------------------------
 # 3. rank-count independence
 # ---------------------------------------------------------------------------------------------
-
-
-def assert_bitwise_equal(ref, other, what):
-    assert set(ref) == set(DUMP_KEYS) and set(other) == set(DUMP_KEYS), (sorted(ref), sorted(other))
-    for k in DUMP_KEYS:
-        a, b = ref[k], other[k]
-        assert a.dtype == b.dtype and a.shape == b.shape, (what, k, a.dtype, b.dtype, a.shape, b.shape)
-        if not np.array_equal(a, b):
-            bad = np.argwhere(a != b)
-            pytest.fail(f"{what}: '{k}' differs bitwise at {len(bad)} entries, first "
-                        f"{bad[:3].tolist()}; max |diff| "
-                        f"{np.max(np.abs(a.astype(float) - b.astype(float)))}")
 
 
 RANK_CASES = {

@@ -11,26 +11,14 @@ import time
 import numpy as np
 import pytest
 
-from conftest import MPI_SCRIPTS, TIMEOUT, describe, mpi_env, mpirun
+from conftest import MPI_SCRIPTS, TIMEOUT, assert_bitwise_equal, describe, mpi_env, mpirun
 
-DUMP_KEYS = ("gid", "x", "x_prev", "diam", "pairs_gid", "pairs_lambda")
 
 
 def assert_ok(proc, summary):
     assert proc.returncode == 0, describe(proc)
     assert summary is not None, "no summary.json" + describe(proc)
     assert "Traceback" not in proc.stderr, describe(proc)
-
-
-def assert_bitwise_equal(ref, other, what):
-    assert set(ref) == set(DUMP_KEYS) and set(other) == set(DUMP_KEYS), (sorted(ref), sorted(other))
-    for k in DUMP_KEYS:
-        a, b = ref[k], other[k]
-        assert a.dtype == b.dtype and a.shape == b.shape, (what, k, a.dtype, b.dtype, a.shape, b.shape)
-        if not np.array_equal(a, b):
-            bad = np.argwhere(a != b) if a.shape == b.shape else None
-            pytest.fail(f"{what}: '{k}' differs bitwise at {len(bad)} entries, first {bad[:3].tolist()}; "
-                        f"max |diff| {np.max(np.abs(a.astype(float) - b.astype(float)))}")
 
 
 def brute_force_figures(d):
