@@ -65,11 +65,11 @@ class Comm:
         buf = np.empty(1 + n_sum + maxima.size, dtype=np.int64)
         buf[0] = n_sum
         buf[1:1 + n_sum] = sums.ravel()
-        # NaN must win the max: store it as the largest positive pattern
-        m = np.where(np.isnan(maxima), np.inf, maxima)
-        mbits = m.view(np.int64).copy()
-        mbits[np.isnan(maxima)] = np.iinfo(np.int64).max
-        buf[1 + n_sum:] = mbits
+        # non-negative float64 order as their int64 bit patterns; NaN must win the max, so it
+        # becomes the largest pattern
+        mbits = buf[1 + n_sum:]
+        mbits[:] = maxima.view(np.int64)
+        mbits[maxima != maxima] = np.iinfo(np.int64).max
         out = np.empty_like(buf)
         self.mpi.Allreduce(buf, out, op=_fused_op())
         g_sums = out[1:1 + n_sum].reshape(sums.shape)
@@ -145,7 +145,6 @@ class GhostPlan:
         self.send_idx = send_idx
         self.recv_ranks = recv_ranks
         self.recv_offsets = recv_offsets
-        self.n_ghost = int(recv_offsets[-1]) if len(recv_offsets) else 0
         self._sendbuf = None
 
     @staticmethod

@@ -264,7 +264,6 @@ def _nested_step(form, dim, kind, y, x_lin, y_new, n_local, diam, pair_offsets, 
                  pair_lambda, xbar, cy, cp, cw, cf, beta, update_lambda, acc, maxima):
     fbuf = np.zeros((dim + 2, exactsum.NBINS + 1))
     max_step2 = 0.0
-    max_overlap = 0.0
     min_ratio2 = 1.0
     n_active = 0
     since_flush = 0

@@ -10,7 +10,6 @@ so that is the T reported (outer counts are reported beside it). Fig. 5 and 6 us
 count on their horizontal axis.
 """
 
-import json
 import math
 import os
 import time
@@ -356,12 +355,6 @@ def _fmt_order(v):
     if v == 0 or not np.isfinite(v):
         return f"{v:.0f}" if v == 0 else "nan"
     return f"{'-' if v < 0 else ''}1e{int(math.floor(math.log10(abs(v)) + 1e-9))}"
-
-
-def _decades_apart(a, b):
-    if a == 0 or b == 0 or not np.isfinite(a):
-        return math.inf if a != b else 0.0
-    return abs(math.log10(abs(a)) - math.log10(abs(b)))
 
 
 def _plots(out, f3, f4, f5, f6, l2, l3, prof2, prof3, radii2, radii3, counts3):

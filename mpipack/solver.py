@@ -230,10 +230,10 @@ class Solver:
         nav = self.method == "nav"
         xbar_p = self.xbar.copy()
         if nav:
-            acc = exactsum.new_accumulator(2)
-            kernels.change_sums(st.x, st.x, n, acc)
+            acc = exactsum.new_accumulator(self.dim + 1)
+            kernels.local_sums(st.x, n, acc)
             g, _ = self.comm.reduce_fused(acc, np.zeros(0))
-            norm_p = math.sqrt(exactsum.value(g, 1))
+            norm_p = math.sqrt(exactsum.value(g, self.dim))  # ||X^p||, for (4.2)
             st.x[:n] = 2.0 * st.x_lin[:n] - st.x_prev[:n]
             # the warm start moves every particle by |X^p - X^{p-1}|: it counts for the rows
             jump2 = neighbors.max_displacement2(st.x, st.x_lin, n)
