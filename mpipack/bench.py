@@ -46,64 +46,73 @@ def _state_bytes(solver):
 
 
 def bench_case(comm, dim, n, form="S", iters=None, repeats=3, spacing=0.99, seed=1):
-    """Run one case; returns a dict of figures (identical on every rank)."""
-    from . import config
-    from .solver import Solver
+    """Run one case; returns a dict of figures (identical on every rank).
+
+    One ``solver.run`` with a timing hook: 3 warm-up iterations, 5 to size the timed loops
+    (about 2 s each) unless ``iters`` is given, then ``repeats`` timed loops, each between two
+    barriers; the hook stops the run after the last one.
+    """
+    from . import config, hooks
+    from .solver import run
 
     p = PARAMS
     overrides = [f"dim={dim}", f"n={n}", "init.kind=lattice", f"init.spacing={spacing}",
                  f"method.form={form}", f"method.alpha={p['alpha']}", f"method.beta={p['beta']}",
-                 "stop.eps=0", f"seed={seed}"]
-    if p["gamma"] is not None:
-        overrides.append(f"method.gamma={p['gamma']}")
+                 f"method.gamma={p['gamma']}", "stop.eps=0", "stop.max_iter=1000000000", f"seed={seed}"]
     scene = config.load("default", overrides)
     # compile (or load) this case's kernels first, so that the memory figure holds no code
-    small = Solver(config.load("default", overrides[:1] + ["n=64"] + overrides[2:]), comm)
-    small.initialise()
-    small.step()
-    del small
+    run(config.load("default", overrides[:1] + ["n=64", "stop.max_iter=1"] + overrides[2:-2]), comm)
     comm.barrier()
-    rss0 = _rss_bytes()
-    solver = Solver(scene, comm)
-    t0 = time.perf_counter()
-    solver.initialise()
-    setup = comm.allreduce(np.array([time.perf_counter() - t0]), op="max")[0]
-    rss1 = _rss_bytes()
-    n_local = max(solver.state.n_local, 1)
-    bpp = comm.allreduce(np.array([(rss1 - rss0) / n_local]), op="max")[0]
-    apb = comm.allreduce(np.array([_state_bytes(solver) / n_local]), op="max")[0]
-    for _ in range(3):
-        solver.step()
-    if iters is None:
+    fig = {"rss0": _rss_bytes()}
+    plan = {"iters": iters, "rates": [], "next": 3, "what": "warm"}
+
+    def start_clock(it, length, what):
         comm.barrier()
-        t = time.perf_counter()
-        for _ in range(5):
-            solver.step()
-        dt = comm.allreduce(np.array([time.perf_counter() - t]), op="max")[0] / 5
-        iters = int(max(10, min(2000, 2.0 / max(dt, 1e-9))))
-    rates = []
-    rebuilds0 = solver.counters["rebuilds"]
-    for _ in range(repeats):
-        comm.barrier()
-        t = time.perf_counter()
-        for _ in range(iters):
-            solver.step()
-        dt = comm.allreduce(np.array([time.perf_counter() - t]), op="max")[0]
-        rates.append(n * iters / dt / comm.size)
+        plan.update(t=time.perf_counter(), next=it + length, what=what)
+
+    def timed(ctx):
+        it = ctx.iteration
+        if it != plan["next"]:
+            return None
+        if plan["what"] == "calibrate":  # 5 iterations size the timed loops
+            dt = comm.allreduce(np.array([time.perf_counter() - plan["t"]]), op="max")[0] / 5
+            plan["iters"] = int(max(10, min(2000, 2.0 / max(dt, 1e-9))))
+        elif plan["what"] == "timed":
+            dt = comm.allreduce(np.array([time.perf_counter() - plan["t"]]), op="max")[0]
+            plan["rates"].append(n * plan["iters"] / dt / comm.size)
+            if len(plan["rates"]) == repeats:
+                return hooks.STOP
+        if plan["iters"] is None:
+            start_clock(it, 5, "calibrate")
+        else:
+            plan.setdefault("rebuilds0", ctx.solver.counters["rebuilds"])
+            start_clock(it, plan["iters"], "timed")
+        return None
+
+    def after_setup(ctx):
+        fig["rss1"] = _rss_bytes()
+        st = ctx.solver.state
+        n_local = max(st.n_local, 1)
+        fig["bpp"] = comm.allreduce(np.array([(fig["rss1"] - fig["rss0"]) / n_local]), op="max")[0]
+        fig["apb"] = comm.allreduce(np.array([_state_bytes(ctx.solver) / n_local]), op="max")[0]
+
+    solver, res = run(scene, comm, hooks=[hooks.Hook(after_setup, at_start=True),
+                                          hooks.Hook(timed, every=1, name="bench")])
+    rates = plan["rates"]
     peak = comm.allreduce(np.array([resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024.0]), op="max")[0]
     st = solver.state
     pairs = comm.allreduce(np.array([st.pair_offsets[-1]], dtype=np.int64), op="sum")[0]
     return {
-        "dim": dim, "n": n, "ranks": comm.size, "form": form, "iterations": iters,
+        "dim": dim, "n": n, "ranks": comm.size, "form": form, "iterations": plan["iters"],
         "repeats": repeats,
         "rate_per_rank_median": float(np.median(rates)),
         "rate_per_rank_all": [float(r) for r in rates],
-        "bytes_per_particle": float(bpp),
-        "array_bytes_per_particle": float(apb),
+        "bytes_per_particle": float(fig["bpp"]),
+        "array_bytes_per_particle": float(fig["apb"]),
         "peak_rss_mb": float(peak / 2**20),
-        "setup_seconds": float(setup),
+        "setup_seconds": float(comm.allreduce(np.array([res["setup_seconds"]]), op="max")[0]),
         "row_entries_per_particle": float(pairs) / n,
-        "rebuilds_in_timed_loops": solver.counters["rebuilds"] - rebuilds0,
+        "rebuilds_in_timed_loops": solver.counters["rebuilds"] - plan["rebuilds0"],
     }
 
 

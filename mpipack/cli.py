@@ -17,8 +17,32 @@ import time
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_NUMERICAL, EXIT_NOT_CONVERGED = 0, 1, 2, 3, 4
 
 
+def _world_rank():
+    """This process's rank under mpirun/srun, read from the launcher's environment (mpi4py is
+    not imported to parse arguments)."""
+    for var in ("OMPI_COMM_WORLD_RANK", "PMIX_RANK", "PMI_RANK", "SLURM_PROCID"):
+        v = os.environ.get(var)
+        if v is not None and v.isdigit():
+            return int(v)
+    return 0
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that prints usage errors on rank 0 only (every rank still exits with code 2)."""
+
+    def error(self, message):
+        if _world_rank() == 0:
+            self.print_usage(sys.stderr)
+            print(f"{self.prog}: error: {message}", file=sys.stderr, flush=True)
+        sys.exit(EXIT_INPUT)
+
+    def print_help(self, file=None):
+        if _world_rank() == 0:
+            super().print_help(file)
+
+
 def _parser():
-    p = argparse.ArgumentParser(prog="mpipack", description="Dense sphere packings with the damped Arrow-Hurwicz algorithm, on MPI ranks.")
+    p = _Parser(prog="mpipack", description="Dense sphere packings with the damped Arrow-Hurwicz algorithm, on MPI ranks.")
     sub = p.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="run a scene (default: the paper's section 4.3 case)")
     r.add_argument("scene", nargs="?", default=None, help="a TOML file or a built-in scene name (mpipack scenes)")
@@ -29,6 +53,8 @@ def _parser():
     r.add_argument("--quiet", action="store_true", help="no progress lines")
     r.add_argument("--dump", default=None, metavar="FILE.npz",
                    help="also write the final particles and lambda > 0 pairs, in gid order (gathered on rank 0; for tests and small N)")
+    r.add_argument("--profile", action="store_true",
+                   help="print the time per phase of the loop (max and mean over ranks) at the end; also in summary.json")
     b = sub.add_parser("bench", help="throughput and memory benchmark in a packed state")
     b.add_argument("--dim", type=int, action="append", default=None, help="dimension (repeatable; default 2 and 3)")
     b.add_argument("--n", type=float, action="append", default=None, help="particle count (repeatable; default 1e4 1e5 1e6)")
@@ -58,7 +84,7 @@ def main(argv=None):
             print(name)
         return 0
     if args.command == "paper":
-        from . import paper
+        from .experiments import paper
         return paper.main(args)
     if args.command == "bench":
         from . import bench
@@ -80,9 +106,7 @@ def run_command(args):
     first = next((e for e in errs if e), None)
     if first:
         _fail(comm, EXIT_INPUT, first)
-    if scene["n"] < 1:
-        _fail(comm, EXIT_INPUT, "key 'n' must be positive")
-    out = args.out or scene["output"]["dir"] or os.path.join("mpipack-out", scene["name"])
+    out = args.out or scene.output.dir or os.path.join("mpipack-out", scene.name)
     # output locations are checked before any work, so a bad path costs nothing
     err = None
     if comm.rank == 0:
@@ -120,50 +144,44 @@ def _prepare_outputs(out, dump):
 
 
 def _run(comm, scene, out, args):
+    from . import hooks as hooks_mod
     from . import solver as solver_mod
     rank0 = comm.rank == 0
-    m = scene["method"]
-    every = scene["output"]["progress_every"]
+    m = scene.method
+    every = scene.output.progress_every
     show = rank0 and not args.quiet and every > 0
     if show:
-        print(f"mpipack: scene {scene['name']}: {m['name'].upper()}-{m['form']} dim={scene['dim']} "
-              f"N={scene['n']} on {comm.size} rank(s); alpha={m['alpha']:g} beta={m['beta']:g} "
-              f"gamma={m['gamma']:g} c={m['c']:g} eps={scene['stop']['eps']:g}", flush=True)
+        print(f"mpipack: scene {scene.name}: {m.name.upper()}-{m.form} dim={scene.dim} "
+              f"N={scene.n} on {comm.size} rank(s); alpha={m.alpha:g} beta={m.beta:g} "
+              f"gamma={m.gamma:g} c={m.c:g} eps={scene.stop.eps:g}", flush=True)
         print(f"{'iteration':>10} {'rel.change':>11} {'max overlap':>11} {'contacts':>9} {'it/s':>9}", flush=True)
-    state = {"t": 0.0, "it": 0}
-
-    def progress(fig, elapsed):
-        if not show:
-            return
-        if elapsed - state["t"] >= every:
-            rate = (fig["iteration"] - state["it"]) / max(elapsed - state["t"], 1e-12)
-            state["t"], state["it"] = elapsed, fig["iteration"]
-            print(f"{fig['iteration']:>10d} {fig['relative_change']:>11.3e} {fig['max_overlap']:>11.3e} "
-                  f"{fig['active_pairs']:>9d} {rate:>9.0f}", flush=True)
-
+    hooks = [hooks_mod.progress_printer(scene, comm, every)] if show else []
     t0 = time.perf_counter()
     try:
-        solver, res = solver_mod.run(scene, comm, on_progress=progress)
+        solver, res = solver_mod.run(scene, comm, hooks=hooks, profile=args.profile)
     except solver_mod.NumericalError as e:
         _fail(comm, EXIT_NUMERICAL, str(e))
     except solver_mod.TooDenseError as e:
         _fail(comm, EXIT_INPUT, str(e))
     wall = time.perf_counter() - t0
     summary = {
-        "scene": scene["name"], "method": m["name"], "form": m["form"], "dim": scene["dim"],
-        "n": scene["n"], "ranks": comm.size, "iterations": res["iterations"],
-        "converged": res["converged"], "wall_seconds": wall,
+        "scene": scene.name, "method": m.name, "form": m.form, "dim": scene.dim,
+        "n": scene.n, "ranks": comm.size, "iterations": res["iterations"],
+        "converged": res["converged"], "stop_reason": res["stop_reason"], "wall_seconds": wall,
         "relative_change": res["relative_change"], "max_overlap": res["max_overlap"],
-        "W": res["W"], "density": res["density"], "density_radius": res["density_radius"],
+        "W": res["W"], "kkt_residual": res["kkt_residual"], "complementarity": res["complementarity"],
+        "density": res["density"], "density_radius": res["density_radius"],
         "particle_iterations_per_second": res["particle_iterations_per_second"],
         "particle_iterations_per_second_per_rank": res["particle_iterations_per_second"] / comm.size,
         "loop_seconds": res["loop_seconds"], "setup_seconds": res["setup_seconds"],
         "active_pairs": res["active_pairs"], "rebuilds": res["rebuilds"],
         "rebalances": res["rebalances"], "far_ghosts": res["far_ghosts"],
         "max_imbalance": res["max_imbalance"], "inner_iterations": res["inner_iterations"],
-        "parameters": {k: m[k] for k in ("alpha", "beta", "gamma", "c", "l_inner", "eps_inner", "tau")},
-        "eps": scene["stop"]["eps"], "max_iter": scene["stop"]["max_iter"], "seed": scene["seed"],
+        "parameters": {k: getattr(m, k) for k in ("alpha", "beta", "gamma", "c", "l_inner", "eps_inner", "tau")},
+        "eps": scene.stop.eps, "max_iter": scene.stop.max_iter, "seed": scene.seed,
     }
+    if args.profile:
+        summary["profile"] = res["profile"]
     if args.dump:
         data = solver.gather()
         if rank0:
@@ -175,7 +193,7 @@ def _run(comm, scene, out, args):
             f.write("\n")
         if not args.quiet:
             verdict = ("converged" if res["converged"] else
-                       ("ran the requested iterations" if scene["stop"]["eps"] == 0 else "NOT converged"))
+                       ("ran the requested iterations" if scene.stop.eps == 0 else "NOT converged"))
             print(f"mpipack: {verdict} after {res['iterations']} iterations in {wall:.2f} s "
                   f"({res['particle_iterations_per_second']:.3g} particle-iterations/s)\n"
                   f"  relative change {res['relative_change']:.3e}, max overlap {res['max_overlap']:.3e} d, "
@@ -183,7 +201,11 @@ def _run(comm, scene, out, args):
                   f"  packing density {res['density']:.4f} in the ball of radius {res['density_radius']:.3g} "
                   f"(radius of gyration) about the centre of mass\n"
                   f"  summary: {os.path.join(out, 'summary.json')}", flush=True)
-    if scene["stop"]["eps"] > 0 and not res["converged"]:
+        if args.profile:
+            print("mpipack: time per phase of the loop", flush=True)
+            for line in solver_mod.profile_lines(res):
+                print("  " + line, flush=True)
+    if scene.stop.eps > 0 and not res["converged"]:
         return EXIT_NOT_CONVERGED
     return EXIT_OK
 

@@ -1,17 +1,25 @@
 """Inter-rank communication: moving particle data and reduced numbers. No physics here.
 
-The four verbs (as in LAMMPS' comm_brick):
+The verbs (as in LAMMPS' comm_brick), each a function of this module:
 
-    exchange   migrate particles (with their pair history) to the rank that owns their position
-    borders    send copies of particles near another rank's box: that rank's ghosts
-    forward    refresh ghost positions from their owners (every iteration)
-    reduce     one fused allreduce of exact sums, integer counts and maxima (every iteration)
+    exchange      migrate particles, with their pair history, to the rank that owns their position
+    borders       send copies of particles near another rank's box (that rank's ghosts), plus
+                  any pair-history partner further away (requested from its owner by gid)
+    forward       refresh ghost positions from their owners (every iteration)
+    reduce_fused  one allreduce of exact sums, integer counts and maxima (every iteration)
+    to_gid_blocks redistribute particles to the owners of consecutive gid blocks (state out)
+    gather_by_gid everything on one rank, in gid order (tests and small N)
 
-A run on one rank never calls MPI in the loop: every verb has a size-1 short cut.
+Particles travel as a dict of per-particle arrays (``part``: local rows, any names) plus their
+pair history as CSR (``hist`` = (offsets (n+1,), partner gid, lambda)): the layout of
+``state.State.local_fields`` and ``neighbors.history``. A run on one rank never calls MPI in
+the loop: every verb has a size-1 short cut (the solver does not even call exchange and borders).
 """
 
 import numpy as np
 from mpi4py import MPI
+
+from .state import gather_rows
 
 _FUSED_OP = None
 
@@ -153,8 +161,8 @@ class GhostPlan:
         return GhostPlan([], z, np.empty(0, dtype=np.int64), [], z)
 
 
-def borders(comm, dest_offsets, dest_idx, fields):
-    """Send copies of local rows to other ranks: the ghost exchange.
+def _send_copies(comm, dest_offsets, dest_idx, fields):
+    """Send copies of local rows to other ranks: one round of the ghost exchange.
 
     dest_offsets (P+1,), dest_idx: rank r gets local rows dest_idx[dest_offsets[r]:...];
     fields: dict name -> per-particle array of local rows (e.g. x, gid, diam).
@@ -175,7 +183,9 @@ def borders(comm, dest_offsets, dest_idx, fields):
 
 
 def forward(comm, plan, x, n_local):
-    """Refresh ghost rows x[n_local:] from their owners' local rows (nonblocking point-to-point)."""
+    """Refresh ghost rows x[n_local:] from their owners' local rows (nonblocking point-to-point).
+
+    Also used for any other per-particle array laid out like x (e.g. NAP/NAV's X^p)."""
     if comm.size == 1 or (not plan.send_ranks and not plan.recv_ranks):
         return
     b = x.shape[1]
@@ -191,3 +201,114 @@ def forward(comm, plan, x, n_local):
     for m, r in enumerate(plan.send_ranks):
         reqs.append(comm.mpi.Isend(plan._sendbuf[plan.send_offsets[m]:plan.send_offsets[m + 1]], dest=r, tag=7))
     MPI.Request.Waitall(reqs)
+
+
+def exchange(comm, owners, part, hist):
+    """Migrate: every particle goes to rank ``owners[i]``; its pair history goes with it.
+
+    owners (n,) int64 from the partition; part: dict of per-particle arrays (n rows);
+    hist: (offsets (n+1,), partner gid, lambda). Returns the new (part, hist): the particles
+    that stayed first (in their order), then the arrivals grouped by source rank.
+    """
+    hist_off, hist_gid, hist_lam = hist
+    order = np.argsort(owners, kind="stable")
+    movers = order[owners[order] != comm.rank]
+    stay = np.flatnonzero(owners == comm.rank)
+    dest = owners[movers]
+    counts = np.bincount(dest, minlength=comm.size).astype(np.int64)
+    h_off, h_idx = gather_rows(hist_off, movers)
+    h_counts = np.diff(h_off)
+    h_per_rank = np.bincount(dest, weights=h_counts, minlength=comm.size).astype(np.int64)
+    send = {k: v[movers] for k, v in part.items()}
+    send.update({"h_count": h_counts, "h_gid": hist_gid[h_idx], "h_lam": hist_lam[h_idx]})
+    send_counts = {k: counts for k in part}
+    send_counts.update({"h_count": counts, "h_gid": h_per_rank, "h_lam": h_per_rank})
+    got, _ = comm.alltoallv(send, send_counts)
+    s_off, s_idx = gather_rows(hist_off, stay)
+    counts_all = np.concatenate([np.diff(s_off), got["h_count"]])
+    new_off = np.zeros(counts_all.shape[0] + 1, dtype=np.int64)
+    np.cumsum(counts_all, out=new_off[1:])
+    new_part = {k: np.concatenate([v[stay], got[k]]) for k, v in part.items()}
+    return new_part, (new_off, np.concatenate([hist_gid[s_idx], got["h_gid"]]),
+                      np.concatenate([hist_lam[s_idx], got["h_lam"]]))
+
+
+def borders(comm, dest_offsets, dest_idx, fields, hist_gid):
+    """Ghosts: send copies of local rows to the ranks that need them, then make sure every
+    pair-history partner (lambda > 0) of a local particle is present, however far away.
+
+    dest_offsets (P+1,), dest_idx: rank r gets local rows dest_idx[dest_offsets[r]:...]
+    (from ``domain.ghost_destinations``); fields: dict name -> per-particle array of local
+    rows, with at least "gid"; hist_gid: partner gids of the local particles' histories.
+    A partner that is not among the locals and the ghosts received is requested from its
+    owner by gid (one allgather of the requests) and the send lists are redone with it.
+    Returns (GhostPlan for ``forward``, dict of ghost arrays in plan order, number of far
+    partners requested over all ranks).
+    """
+    plan, got = _send_copies(comm, dest_offsets, dest_idx, fields)
+    gid = fields["gid"]
+    n_local = gid.shape[0]
+    present = np.concatenate([gid, got["gid"]])
+    missing = np.setdiff1d(hist_gid, present)  # sorted, unique
+    requests = comm.allgather_object(missing)
+    n_far = int(sum(len(r) for r in requests))
+    if n_far == 0:
+        return plan, got, 0
+    # far partners: each owner adds the requested particles to its send lists
+    lookup = np.argsort(gid)
+    sorted_gid = gid[lookup]
+    ranks = [np.repeat(np.arange(comm.size), np.diff(dest_offsets))]
+    rows = [dest_idx]
+    for r, req in enumerate(requests):
+        if r == comm.rank or len(req) == 0 or n_local == 0:
+            continue
+        pos = np.minimum(np.searchsorted(sorted_gid, req), n_local - 1)
+        mine = lookup[pos[sorted_gid[pos] == req]]
+        mine = np.setdiff1d(mine, dest_idx[dest_offsets[r]:dest_offsets[r + 1]])
+        ranks.append(np.full(mine.shape[0], r, dtype=np.int64))
+        rows.append(mine.astype(np.int64))
+    ranks = np.concatenate(ranks)
+    rows = np.concatenate(rows)
+    o = np.argsort(ranks, kind="stable")
+    offsets = np.zeros(comm.size + 1, dtype=np.int64)
+    np.cumsum(np.bincount(ranks, minlength=comm.size), out=offsets[1:])
+    plan, got = _send_copies(comm, offsets, rows[o], fields)
+    return plan, got, n_far
+
+
+def to_gid_blocks(comm, n_global, part, hist):
+    """Redistribute particles so that rank r holds gids [N r/P, N (r+1)/P), in gid order.
+
+    part: dict of per-particle arrays with "gid"; hist: (offsets, partner gid, lambda).
+    Returns (part, hist) of this rank's block, rows sorted by gid: the partition-free form of
+    the state (``state.BlockState``).
+    """
+    P = comm.size
+    gid = part["gid"]
+    # the block of gid g is the r with N r/P <= g < N (r+1)/P (empty blocks when N < P)
+    bounds = (np.arange(P + 1, dtype=np.int64) * n_global) // P
+    owners = (np.searchsorted(bounds, gid, side="right") - 1).astype(np.int64)
+    if P > 1:
+        part, hist = exchange(comm, owners, part, hist)
+    o = np.argsort(part["gid"], kind="stable")
+    part = {k: v[o] for k, v in part.items()}
+    h_off, h_idx = gather_rows(hist[0], o)
+    return part, (h_off, hist[1][h_idx], hist[2][h_idx])
+
+
+def gather_by_gid(comm, arrays, root=0):
+    """Concatenate the ranks' per-particle arrays on ``root`` and sort by arrays["gid"].
+
+    Returns the dict on root, None elsewhere. Arrays without a "gid" row alignment (ragged
+    data such as pair lists) are passed as ``arrays["_ragged"]``: a dict concatenated as is.
+    """
+    ragged = arrays.pop("_ragged", {})
+    mine = (arrays, ragged)
+    parts = [mine] if comm.size == 1 else comm.mpi.gather(mine, root=root)
+    if comm.rank != root:
+        return None
+    cat = {k: np.concatenate([p[0][k] for p in parts]) for k in arrays}
+    o = np.argsort(cat["gid"], kind="stable")
+    out = {k: v[o] for k, v in cat.items()}
+    out["_ragged"] = {k: np.concatenate([p[1][k] for p in parts]) for k in ragged}
+    return out

@@ -1,17 +1,22 @@
 """Scenes: TOML files or built-in names, overrides, defaults and validation. No numerics.
 
-A scene is a nested table; every key has a default (``DEFAULTS``) and a check. The result of
-``load`` is a plain, fully populated dict that the rest of the code only reads.
+A scene is a nested table; every key has a default (``DEFAULTS``) and a check. ``load`` merges,
+validates and returns a ``Scene``: frozen, typed dataclasses read once by the run (attribute
+access, no string keys in the loop). ``Scene.as_dict()`` gives the nested table back (for
+summary.json and output files) and ``from_dict`` rebuilds a Scene from it.
 
 Errors are ``SceneError`` with a one-line message naming the key; the CLI turns them into
 exit code 2 on every rank.
 """
 
 import copy
+import dataclasses
 import math
 import tomllib
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import Optional
 
 METHODS = ("daha", "aha", "nap", "nav")
 FORMS = ("S", "NS")
@@ -85,9 +90,111 @@ def _merge(base, over, prefix=""):
             base[key] = val
 
 
+@dataclass(frozen=True)
+class Particles:
+    diameter: float
+    diameter_max: Optional[float]
+
+    @property
+    def d_max(self):
+        """Largest diameter of the scene."""
+        return self.diameter_max if self.diameter_max is not None else self.diameter
+
+
+@dataclass(frozen=True)
+class Init:
+    kind: str
+    sigma: float
+    spacing: float
+    jitter: float
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    form: str
+    alpha: float
+    beta: float
+    gamma: float
+    c: float
+    l_inner: int
+    eps_inner: float
+    tau: float
+
+    @property
+    def nested(self):
+        return self.name in ("nap", "nav")
+
+
+@dataclass(frozen=True)
+class Stop:
+    eps: float
+    max_iter: int
+
+
+@dataclass(frozen=True)
+class Neighbor:
+    skin: float
+    rebalance: float
+    max_pair_gib: Optional[float]
+
+
+@dataclass(frozen=True)
+class Output:
+    progress_every: float
+    dir: Optional[str]
+
+
+_SECTIONS = {"particles": Particles, "init": Init, "method": Method, "stop": Stop,
+             "neighbor": Neighbor, "output": Output}
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A validated scene. Sections are frozen dataclasses; ``replace`` makes a changed copy."""
+    name: str
+    dim: int
+    n: int
+    seed: int
+    particles: Particles
+    init: Init
+    method: Method
+    stop: Stop
+    neighbor: Neighbor
+    output: Output
+
+    def as_dict(self):
+        return dataclasses.asdict(self)
+
+    def replace(self, **sections):
+        """A copy with top-level keys or whole sections changed; a section may be given as a
+        dict of its changed keys, e.g. ``scene.replace(stop={"eps": 0.0})``."""
+        changes = {}
+        for key, val in sections.items():
+            if isinstance(val, dict):
+                val = dataclasses.replace(getattr(self, key), **val)
+            changes[key] = val
+        return dataclasses.replace(self, **changes)
+
+
+def from_dict(data):
+    """A Scene from a fully populated nested table (``Scene.as_dict`` output), validated."""
+    scene = copy.deepcopy(DEFAULTS)
+    _merge(scene, data)
+    validate(scene)
+    return _freeze(scene)
+
+
+def _freeze(table):
+    kw = {k: table[k] for k in ("name", "dim", "n", "seed")}
+    for sec, cls in _SECTIONS.items():
+        kw[sec] = cls(**table[sec])
+    return Scene(**kw)
+
+
 def load(source=None, overrides=(), seed=None):
-    """Scene dict from a file or built-in name (default: the built-in 'default'), with
-    ``overrides`` as 'dotted.key=value' strings and an optional seed, validated."""
+    """Scene from a file or built-in name (default: the built-in 'default'), with
+    ``overrides`` as 'dotted.key=value' strings and an optional seed, validated and frozen."""
     data = _read(source or "default")
     scene = copy.deepcopy(DEFAULTS)
     _merge(scene, data)
@@ -103,7 +210,7 @@ def load(source=None, overrides=(), seed=None):
     if seed is not None:
         scene["seed"] = seed
     validate(scene)
-    return scene
+    return _freeze(scene)
 
 
 def _num(scene, dotted, kind=float, positive=True, allow_zero=False, optional=False):
@@ -180,5 +287,4 @@ def validate(scene):
 
 def d_max(scene):
     """Largest diameter of the scene."""
-    p = scene["particles"]
-    return p["diameter_max"] if p["diameter_max"] is not None else p["diameter"]
+    return scene.particles.d_max

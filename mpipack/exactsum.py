@@ -48,40 +48,67 @@ def new_accumulator(n_quantities):
 
 
 @njit(cache=True, inline="always")
-def add(fbuf, q, x):
-    """Add x to quantity q of the float staging buffer ``fbuf[n_quantities, NBINS + 1]``.
+def staging(acc):
+    """A float staging buffer for ``acc``: shape (n_quantities, NBINS + 2), zeroed.
 
-    Column NBINS of fbuf counts out-of-range values. Call ``flush`` at least every
-    FLUSH_EVERY additions per quantity.
+    Every kernel that sums into an accumulator uses the same three calls, so none can forget
+    to flush in time (which would silently lose exactness)::
+
+        fbuf = exactsum.staging(acc)
+        for i in ...:
+            exactsum.add(fbuf, acc, q, value)      # flushes row q by itself when due
+        exactsum.flush(fbuf, acc)                  # the rest, once at the end
+
+    Columns 0..NBINS-1 hold the exact float partial sums of the bins, column NBINS counts
+    out-of-range values and column NBINS+1 counts the additions since the row's last flush.
+    """
+    return np.zeros((acc.shape[0], NBINS + 2))
+
+
+@njit(cache=True, inline="always")
+def add(fbuf, acc, q, x):
+    """Add x to quantity q: cut it into the bins of ``fbuf`` (see ``staging``); every
+    FLUSH_EVERY additions the row is moved into the int64 accumulator ``acc``.
+
+    Out-of-range values (|x| >= RANGE, NaN, Inf) are counted in column NBINS instead.
     """
     if not (abs(x) < RANGE):  # also catches NaN
         fbuf[q, 4] += 1.0
-        return
-    q0 = (x + M0) - M0
-    r = x - q0
-    q1 = (r + M1) - M1
-    r = r - q1
-    q2 = (r + M2) - M2
-    r = r - q2
-    q3 = (r + M3) - M3
-    fbuf[q, 0] += q0
-    fbuf[q, 1] += q1
-    fbuf[q, 2] += q2
-    fbuf[q, 3] += q3
+    else:
+        q0 = (x + M0) - M0
+        r = x - q0
+        q1 = (r + M1) - M1
+        r = r - q1
+        q2 = (r + M2) - M2
+        r = r - q2
+        q3 = (r + M3) - M3
+        fbuf[q, 0] += q0
+        fbuf[q, 1] += q1
+        fbuf[q, 2] += q2
+        fbuf[q, 3] += q3
+    fbuf[q, 5] += 1.0
+    if fbuf[q, 5] == FLUSH_EVERY:
+        flush_row(fbuf, acc, q)
+
+
+@njit(cache=True)
+def flush_row(fbuf, acc, q):
+    """Move row q of the staging buffer into the int64 accumulator and carry."""
+    acc[q, 0] += np.int64(fbuf[q, 0] / ULP0)
+    acc[q, 1] += np.int64(fbuf[q, 1] / ULP1)
+    acc[q, 2] += np.int64(fbuf[q, 2] / ULP2)
+    acc[q, 3] += np.int64(fbuf[q, 3] / ULP3)
+    acc[q, 4] += np.int64(fbuf[q, 4])
+    for k in range(NBINS + 2):
+        fbuf[q, k] = 0.0
+    normalize_row(acc[q])
 
 
 @njit(cache=True)
 def flush(fbuf, acc):
-    """Move the exact float partial sums of ``fbuf`` into the int64 accumulator and carry."""
+    """Move every row of the staging buffer into the accumulator (call once at the end)."""
     for q in range(fbuf.shape[0]):
-        acc[q, 0] += np.int64(fbuf[q, 0] / ULP0)
-        acc[q, 1] += np.int64(fbuf[q, 1] / ULP1)
-        acc[q, 2] += np.int64(fbuf[q, 2] / ULP2)
-        acc[q, 3] += np.int64(fbuf[q, 3] / ULP3)
-        acc[q, 4] += np.int64(fbuf[q, 4])
-        for k in range(NBINS + 1):
-            fbuf[q, k] = 0.0
-        normalize_row(acc[q])
+        flush_row(fbuf, acc, q)
 
 
 @njit(cache=True, inline="always")
@@ -97,15 +124,10 @@ def normalize_row(a):
 @njit(cache=True)
 def accumulate(values, acc, q):
     """Exact sum of a 1-D float64 array into quantity q of ``acc``."""
-    fbuf = np.zeros((acc.shape[0], NBINS + 1))
-    n = values.shape[0]
-    start = 0
-    while start < n:
-        stop = min(n, start + FLUSH_EVERY)
-        for i in range(start, stop):
-            add(fbuf, q, values[i])
-        flush(fbuf, acc)
-        start = stop
+    fbuf = staging(acc)
+    for i in range(values.shape[0]):
+        add(fbuf, acc, q, values[i])
+    flush(fbuf, acc)
 
 
 @njit(cache=True)

@@ -97,14 +97,20 @@ def lattice_points(n, dim, spacing):
 
 def positions(scene, gids):
     """Initial positions of the given gids for the scene's init block, shape (len(gids), dim)."""
-    init = scene["init"]
-    dim = scene["dim"]
-    if init["kind"] == "gaussian":
-        return gaussian(scene["seed"], gids, dim, float(init["sigma"]), np.zeros(dim))
-    if init["kind"] == "lattice":
-        pts = lattice_points(scene["n"], dim, float(init["spacing"]))
+    init = scene.init
+    dim = scene.dim
+    if init.kind == "gaussian":
+        return gaussian(scene.seed, gids, dim, float(init.sigma), np.zeros(dim))
+    if init.kind == "lattice":
+        pts = lattice_points(scene.n, dim, float(init.spacing))
         x = pts[gids]
-        if init["jitter"] > 0:
-            x = x + gaussian(scene["seed"], gids, dim, float(init["jitter"]), np.zeros(dim))
+        if init.jitter > 0:
+            x = x + gaussian(scene.seed, gids, dim, float(init.jitter), np.zeros(dim))
         return x
-    raise ValueError(f"unknown init kind {init['kind']!r}")
+    raise ValueError(f"unknown init kind {init.kind!r}")
+
+
+def scene_diameters(scene, gids):
+    """Diameters of the given gids for the scene's particles block."""
+    p = scene.particles
+    return diameters(scene.seed, gids, float(p.diameter), float(p.d_max))

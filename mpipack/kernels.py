@@ -61,7 +61,7 @@ def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offse
                           pair_lambda, xbar, a1, a2, a3, a4, beta, update_lambda, acc, maxima):
     # form and dim are compile-time constants of each wrapper below: LLVM removes the dead
     # branches and keeps the coordinates in registers (a runtime range(dim) loop does not).
-    fbuf = np.zeros((dim + 2, exactsum.NBINS + 1))
+    fbuf = exactsum.staging(acc)
     # c = 2 (and AHA) make the scheme one-step: a2 = 0, and X^{n-1} need not be read at all
     two_step = a2 != 0.0
     xb0 = xbar[0]
@@ -71,7 +71,6 @@ def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offse
     max_overlap = 0.0
     min_ratio2 = 1.0
     n_active = 0
-    since_flush = 0
     for i in range(n_local):
         xi0 = x[i, 0]
         xi1 = x[i, 1] if dim > 1 else 0.0
@@ -131,29 +130,25 @@ def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offse
         # (2.10a); also the exact partial sums and the maxima for the fused reduction
         xn0 = a1 * xi0 + (a2 * x_prev[i, 0] if two_step else 0.0) - a3 * (xi0 - xb0) - f0
         x_new[i, 0] = xn0
-        exactsum.add(fbuf, 0, xn0)
+        exactsum.add(fbuf, acc, 0, xn0)
         dx2 = (xn0 - xi0) * (xn0 - xi0)
         xx2 = xi0 * xi0
         if dim > 1:
             xn1 = a1 * xi1 + (a2 * x_prev[i, 1] if two_step else 0.0) - a3 * (xi1 - xb1) - f1
             x_new[i, 1] = xn1
-            exactsum.add(fbuf, 1, xn1)
+            exactsum.add(fbuf, acc, 1, xn1)
             dx2 += (xn1 - xi1) * (xn1 - xi1)
             xx2 += xi1 * xi1
         if dim > 2:
             xn2 = a1 * xi2 + (a2 * x_prev[i, 2] if two_step else 0.0) - a3 * (xi2 - xb2) - f2
             x_new[i, 2] = xn2
-            exactsum.add(fbuf, 2, xn2)
+            exactsum.add(fbuf, acc, 2, xn2)
             dx2 += (xn2 - xi2) * (xn2 - xi2)
             xx2 += xi2 * xi2
-        exactsum.add(fbuf, dim, dx2)
-        exactsum.add(fbuf, dim + 1, xx2)
+        exactsum.add(fbuf, acc, dim, dx2)
+        exactsum.add(fbuf, acc, dim + 1, xx2)
         if dx2 > max_step2 or dx2 != dx2:
             max_step2 = dx2
-        since_flush += 1
-        if since_flush == exactsum.FLUSH_EVERY:
-            exactsum.flush(fbuf, acc)
-            since_flush = 0
     exactsum.flush(fbuf, acc)
     if form == SMOOTH:
         max_overlap = 1.0 - np.sqrt(min_ratio2)
@@ -262,11 +257,10 @@ def nested_coefficients(method, alpha, tau):
 @njit(cache=True, inline="always")
 def _nested_step(form, dim, kind, y, x_lin, y_new, n_local, diam, pair_offsets, pair_j,
                  pair_lambda, xbar, cy, cp, cw, cf, beta, update_lambda, acc, maxima):
-    fbuf = np.zeros((dim + 2, exactsum.NBINS + 1))
+    fbuf = exactsum.staging(acc)
     max_step2 = 0.0
     min_ratio2 = 1.0
     n_active = 0
-    since_flush = 0
     f = np.zeros(dim)
     for i in range(n_local):
         f[:] = 0.0
@@ -314,17 +308,13 @@ def _nested_step(form, dim, kind, y, x_lin, y_new, n_local, diam, pair_offsets, 
             w = x_lin[i, k] if kind == NAV else yi
             yn = cy * yi + cp * x_lin[i, k] - cw * (w - xbar[k]) - cf * f[k]
             y_new[i, k] = yn
-            exactsum.add(fbuf, k, yn)
+            exactsum.add(fbuf, acc, k, yn)
             dx2 += (yn - yi) * (yn - yi)
             yy2 += yi * yi
-        exactsum.add(fbuf, dim, dx2)
-        exactsum.add(fbuf, dim + 1, yy2)
+        exactsum.add(fbuf, acc, dim, dx2)
+        exactsum.add(fbuf, acc, dim + 1, yy2)
         if dx2 > max_step2 or dx2 != dx2:
             max_step2 = dx2
-        since_flush += 1
-        if since_flush == exactsum.FLUSH_EVERY:
-            exactsum.flush(fbuf, acc)
-            since_flush = 0
     exactsum.flush(fbuf, acc)
     maxima[MAX_STEP2] = max_step2
     maxima[MAX_OVERLAP] = 1.0 - np.sqrt(min_ratio2)
@@ -365,24 +355,127 @@ def nested_step(method, form):
     return _NESTED[(method, form)]
 
 
+# ---- metrics of a configuration and its multipliers (one pass, on demand) ---------------------
+#
+# For each local particle i, with g_i = grad_{X_i} L = (X_i - Xbar) + sum_j lambda_ij grad_{X_i} phi_ij:
+#   exact rows  KKT2 = sum_i |g_i|^2,  GW2 = sum_i |X_i - Xbar|^2 (= |grad W|^2 = 2 W)
+#   maxima      max overlap (d_ij - r)/d_ij, complementarity max lambda_ij |phi_ij|, max lambda_ij
+#   per particle pressure mu_i = sum_j lambda_ij (paper, Fig. 9) and active contacts
+# With update_lambda it first brings lambda up to date with X, (2.10b), exactly as the step
+# kernel would: the end of a DAHA run uses it for lambda^n of the final X^n.
+
+MET_KKT2, MET_GW2 = 0, 1
+MET_OVERLAP, MET_COMPL, MET_LAMBDA = 0, 1, 2
+N_MET_MAX = 3
+
+
+@njit(cache=True, inline="always")
+def _pair_metrics(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, xbar, beta,
+                  update_lambda, acc, maxima, pressure, contacts):
+    dim = x.shape[1]
+    fbuf = exactsum.staging(acc)
+    g = np.zeros(dim)
+    d = np.zeros(dim)
+    max_overlap = 0.0
+    min_ratio2 = 1.0
+    max_compl = 0.0
+    max_lam = 0.0
+    n_active = 0
+    for i in range(n_local):
+        gw2 = 0.0
+        for k in range(dim):
+            g[k] = x[i, k] - xbar[k]
+            gw2 += g[k] * g[k]
+        mu = 0.0
+        nc = 0
+        di = diam[i]
+        for e in range(pair_offsets[i], pair_offsets[i + 1]):
+            j = pair_j[e]
+            r2 = 0.0
+            for k in range(dim):
+                d[k] = x[i, k] - x[j, k]
+                r2 += d[k] * d[k]
+            dij = 0.5 * (di + diam[j])
+            r = 0.0
+            if form == SMOOTH:
+                phi = dij * dij - r2
+            else:
+                r = np.sqrt(r2)
+                phi = dij - r
+            lam = pair_lambda[e]
+            if update_lambda:
+                lam = lam + beta * phi
+                if lam < 0.0:
+                    lam = 0.0
+                pair_lambda[e] = lam
+            if phi > 0.0:
+                if form == SMOOTH:
+                    if r2 < min_ratio2 * (dij * dij):
+                        min_ratio2 = r2 / (dij * dij)
+                elif phi > max_overlap * dij:
+                    max_overlap = phi / dij
+            if lam > 0.0:
+                n_active += 1
+                mu += lam
+                nc += 1
+                c = lam * abs(phi)
+                if c > max_compl:
+                    max_compl = c
+                if lam > max_lam:
+                    max_lam = lam
+                if form == SMOOTH:
+                    for k in range(dim):
+                        g[k] -= 2.0 * lam * d[k]
+                elif r > 0.0:
+                    for k in range(dim):
+                        g[k] -= lam * d[k] / r
+        kkt2 = 0.0
+        for k in range(dim):
+            kkt2 += g[k] * g[k]
+        exactsum.add(fbuf, acc, MET_KKT2, kkt2)
+        exactsum.add(fbuf, acc, MET_GW2, gw2)
+        pressure[i] = mu
+        contacts[i] = nc
+    exactsum.flush(fbuf, acc)
+    if form == SMOOTH:
+        max_overlap = 1.0 - np.sqrt(min_ratio2)
+    maxima[MET_OVERLAP] = max_overlap
+    maxima[MET_COMPL] = max_compl
+    maxima[MET_LAMBDA] = max_lam
+    return n_active
+
+
+@njit(cache=True)
+def metrics_s(x, n_local, diam, po, pj, pl, xbar, beta, upd, acc, mx, pressure, contacts):
+    return _pair_metrics(SMOOTH, x, n_local, diam, po, pj, pl, xbar, beta, upd, acc, mx, pressure, contacts)
+
+
+@njit(cache=True)
+def metrics_ns(x, n_local, diam, po, pj, pl, xbar, beta, upd, acc, mx, pressure, contacts):
+    return _pair_metrics(NONSMOOTH, x, n_local, diam, po, pj, pl, xbar, beta, upd, acc, mx, pressure, contacts)
+
+
+def pair_metrics(form):
+    """The compiled metrics pass for a form (any dimension). Arguments: (x, n_local, diam,
+    pair_offsets, pair_j, pair_lambda, xbar, beta, update_lambda, acc (2, NBINS+1), maxima
+    (N_MET_MAX,), pressure (n_local,), contacts int32 (n_local,)); returns the number of row
+    entries with lambda > 0."""
+    return metrics_s if form == "S" else metrics_ns
+
+
 @njit(cache=True)
 def change_sums(x, x_ref, n_local, acc):
     """Exact sums of |x_i - x_ref_i|^2 (row 0) and |x_ref_i|^2 (row 1) over local particles."""
     b = x.shape[1]
-    fbuf = np.zeros((acc.shape[0], exactsum.NBINS + 1))
-    since = 0
+    fbuf = exactsum.staging(acc)
     for i in range(n_local):
         d2 = 0.0
         r2 = 0.0
         for k in range(b):
             d2 += (x[i, k] - x_ref[i, k]) * (x[i, k] - x_ref[i, k])
             r2 += x_ref[i, k] * x_ref[i, k]
-        exactsum.add(fbuf, 0, d2)
-        exactsum.add(fbuf, 1, r2)
-        since += 1
-        if since == exactsum.FLUSH_EVERY:
-            exactsum.flush(fbuf, acc)
-            since = 0
+        exactsum.add(fbuf, acc, 0, d2)
+        exactsum.add(fbuf, acc, 1, r2)
     exactsum.flush(fbuf, acc)
 
 
@@ -390,18 +483,13 @@ def change_sums(x, x_ref, n_local, acc):
 def local_sums(x, n_local, acc):
     """Exact sums of X (b rows) and |X|^2 (row b) over local particles, added to acc."""
     b = x.shape[1]
-    fbuf = np.zeros((acc.shape[0], exactsum.NBINS + 1))
-    since = 0
+    fbuf = exactsum.staging(acc)
     for i in range(n_local):
         s = 0.0
         for k in range(b):
-            exactsum.add(fbuf, k, x[i, k])
+            exactsum.add(fbuf, acc, k, x[i, k])
             s += x[i, k] * x[i, k]
-        exactsum.add(fbuf, b, s)
-        since += 1
-        if since == exactsum.FLUSH_EVERY:
-            exactsum.flush(fbuf, acc)
-            since = 0
+        exactsum.add(fbuf, acc, b, s)
     exactsum.flush(fbuf, acc)
 
 
@@ -409,15 +497,10 @@ def local_sums(x, n_local, acc):
 def centred_sums(x, n_local, xbar, acc):
     """Exact sum of |X_i - Xbar|^2 over local particles into acc row 0 (W = half of it)."""
     b = x.shape[1]
-    fbuf = np.zeros((acc.shape[0], exactsum.NBINS + 1))
-    since = 0
+    fbuf = exactsum.staging(acc)
     for i in range(n_local):
         s = 0.0
         for k in range(b):
             s += (x[i, k] - xbar[k]) * (x[i, k] - xbar[k])
-        exactsum.add(fbuf, 0, s)
-        since += 1
-        if since == exactsum.FLUSH_EVERY:
-            exactsum.flush(fbuf, acc)
-            since = 0
+        exactsum.add(fbuf, acc, 0, s)
     exactsum.flush(fbuf, acc)

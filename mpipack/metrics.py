@@ -44,19 +44,14 @@ def _intersection(dim, s, a, R):
 def covered_measure(x, diam, n_local, centre, radii, acc):
     """Exact sums over local spheres of |sphere ∩ B(centre, R)| for each R in radii (acc rows)."""
     dim = x.shape[1]
-    fbuf = np.zeros((acc.shape[0], exactsum.NBINS + 1))
-    since = 0
+    fbuf = exactsum.staging(acc)
     for i in range(n_local):
         s2 = 0.0
         for k in range(dim):
             s2 += (x[i, k] - centre[k]) ** 2
         s = math.sqrt(s2)
         for q in range(radii.shape[0]):
-            exactsum.add(fbuf, q, _intersection(dim, s, 0.5 * diam[i], radii[q]))
-        since += 1
-        if since == exactsum.FLUSH_EVERY:
-            exactsum.flush(fbuf, acc)
-            since = 0
+            exactsum.add(fbuf, acc, q, _intersection(dim, s, 0.5 * diam[i], radii[q]))
     exactsum.flush(fbuf, acc)
 
 

@@ -19,11 +19,58 @@ lambda^0; after ``finish``), False when it holds lambda^{n-1} and the next step 
 update it from X^n.
 
 The whole state is serialisable by gid without the partition: positions, previous positions,
-diameters and, per particle, its (partner gid, lambda > 0) history.
+diameters and, per particle, its (partner gid, lambda > 0) history. ``BlockState`` is that
+form: what a checkpoint holds and what ``Solver.initialise`` can start from.
 """
+
+from dataclasses import dataclass, field
+from typing import Optional
 
 import numpy as np
 from numba import njit
+
+
+@dataclass
+class BlockState:
+    """The state of one rank's block of consecutive global ids, independent of the partition.
+
+    Rank r of P holds gids [gid_lo, gid_lo + m) (by ``comm.to_gid_blocks``: N r/P .. N (r+1)/P),
+    rows in gid order:
+
+        x, x_prev      (m, b)   X^n and X^{n-1}
+        x_lin          (m, b)   NAP/NAV's linearisation point X^p, else None
+        diam           (m,)
+        hist_count     (m,)     int64, partners with lambda > 0 of each particle
+        hist_gid       (k,)     int64, their gids (each particle's run in gid order)
+        hist_lambda    (k,)     their multipliers (each pair appears under both particles)
+
+    and the scalars that are the same on every rank: n_global, dim, iteration, lambda_fresh
+    (see ``State``), counters (dict of ints/floats), extra (dict: whatever else a continuation
+    needs, e.g. an adaptive controller's state).
+    """
+    n_global: int
+    dim: int
+    gid_lo: int
+    x: np.ndarray
+    x_prev: np.ndarray
+    diam: np.ndarray
+    hist_count: np.ndarray
+    hist_gid: np.ndarray
+    hist_lambda: np.ndarray
+    x_lin: Optional[np.ndarray] = None
+    iteration: int = 0
+    lambda_fresh: bool = True
+    counters: dict = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def gids(self):
+        return np.arange(self.gid_lo, self.gid_lo + self.x.shape[0], dtype=np.int64)
+
+    def hist_offsets(self):
+        off = np.zeros(self.hist_count.shape[0] + 1, dtype=np.int64)
+        np.cumsum(self.hist_count, out=off[1:])
+        return off
 
 
 class State:

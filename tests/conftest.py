@@ -109,3 +109,15 @@ def assert_bitwise_equal(ref, other, what):
             bad = np.argwhere(a != b) if a.shape == b.shape else None
             pytest.fail(f"{what}: '{k}' differs bitwise at {len(bad)} entries, first {bad[:3].tolist()}; "
                         f"max |diff| {np.max(np.abs(a.astype(float) - b.astype(float)))}")
+
+
+def step_each(s, n, fn):
+    """Advance Solver ``s`` by n iterations through the one loop (solver.run, stop rule: n more
+    iterations), calling fn(figures) after each. Returns run's result dict.
+
+    Tests observe the trajectory through a hook, as any other user of the loop does."""
+    from mpipack import hooks, solver as solver_mod
+    scene = s.scene.replace(stop={"eps": 0.0, "max_iter": s.state.iteration + n})
+    _, res = solver_mod.run(scene, s.comm, hooks=[hooks.Hook(lambda ctx: fn(ctx.figures), every=1)],
+                            solver=s)
+    return res

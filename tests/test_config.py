@@ -10,43 +10,57 @@ from mpipack import config
 def test_builtin_scenes():
     assert {"default", "paper-3d", "two-spheres"} <= set(config.builtin_names())
     d = config.load()
-    assert d["name"] == "default" and d["dim"] == 2 and d["n"] == 2000
-    m = d["method"]
-    assert (m["name"], m["form"], m["alpha"], m["beta"], m["gamma"], m["c"]) == \
-        ("daha", "S", 7.8e-3, 2.8e3, 1.6e-2, 2.0)
-    assert d["stop"]["eps"] == 1e-5
+    assert d.name == "default" and d.dim == 2 and d.n == 2000
+    m = d.method
+    assert (m.name, m.form, m.alpha, m.beta, m.gamma, m.c) == ("daha", "S", 7.8e-3, 2.8e3, 1.6e-2, 2.0)
+    assert d.stop.eps == 1e-5
     p3 = config.load("paper-3d")
-    assert p3["dim"] == 3 and p3["stop"]["eps"] == 0.0 and p3["method"]["gamma"] == 5.6e-2
+    assert p3.dim == 3 and p3.stop.eps == 0.0 and p3.method.gamma == 5.6e-2
     two = config.load("two-spheres")
-    assert two["dim"] == 1 and two["n"] == 2 and two["method"]["form"] == "NS"
+    assert two.dim == 1 and two.n == 2 and two.method.form == "NS"
     # no gamma given: (2.10) exactly, gamma = sqrt(alpha beta)
-    assert two["method"]["gamma"] == pytest.approx(math.sqrt(0.3 * 3.0), rel=1e-15)
-    # every key is populated
-    assert set(d) == set(config.DEFAULTS)
+    assert two.method.gamma == pytest.approx(math.sqrt(0.3 * 3.0), rel=1e-15)
+    # every key is populated, and the table form rebuilds the same scene
+    table = d.as_dict()
+    assert set(table) == set(config.DEFAULTS)
+    for sec, keys in config.DEFAULTS.items():
+        if isinstance(keys, dict):
+            assert set(table[sec]) == set(keys), sec
+    assert config.from_dict(table) == d
+
+
+def test_scene_is_frozen():
+    d = config.load()
+    with pytest.raises(AttributeError):
+        d.n = 5
+    with pytest.raises(AttributeError):
+        d.method.alpha = 1.0
+    e = d.replace(n=10, stop={"eps": 0.0})
+    assert (e.n, e.stop.eps, e.stop.max_iter) == (10, 0.0, d.stop.max_iter) and d.n == 2000
 
 
 def test_overrides_and_seed():
     s = config.load("default", ["n=50", "stop.eps=0", "dim=3", "method.form=NS",
                                 "method.name=aha", "init.kind=lattice",
                                 "particles.diameter_max=1.3", "neighbor.skin=0.5"], seed=9)
-    assert s["n"] == 50 and isinstance(s["n"], int)
-    assert s["stop"]["eps"] == 0.0 and isinstance(s["stop"]["eps"], float)
-    assert s["dim"] == 3 and s["method"]["form"] == "NS" and s["method"]["name"] == "aha"
-    assert s["init"]["kind"] == "lattice" and s["particles"]["diameter_max"] == 1.3
-    assert s["seed"] == 9 and s["neighbor"]["skin"] == 0.5
+    assert s.n == 50 and isinstance(s.n, int)
+    assert s.stop.eps == 0.0 and isinstance(s.stop.eps, float)
+    assert s.dim == 3 and s.method.form == "NS" and s.method.name == "aha"
+    assert s.init.kind == "lattice" and s.particles.diameter_max == 1.3
+    assert s.seed == 9 and s.neighbor.skin == 0.5
     assert config.d_max(s) == 1.3
-    assert config.load("default", ["n=50.0"])["n"] == 50
+    assert config.load("default", ["n=50.0"]).n == 50
     # a later override wins
-    assert config.load("default", ["n=50", "n=60"])["n"] == 60
+    assert config.load("default", ["n=50", "n=60"]).n == 60
 
 
 def test_scene_file(tmp_path):
     f = tmp_path / "mine.toml"
     f.write_text('dim = 3\nn = 10\n[method]\nform = "NS"\nalpha = 0.1\nbeta = 0.4\n')
     s = config.load(str(f))
-    assert s["name"] == "mine" and s["dim"] == 3 and s["n"] == 10
-    assert s["method"]["gamma"] == pytest.approx(0.2, rel=1e-15)
-    assert s["stop"] == config.DEFAULTS["stop"]
+    assert s.name == "mine" and s.dim == 3 and s.n == 10
+    assert s.method.gamma == pytest.approx(0.2, rel=1e-15)
+    assert s.as_dict()["stop"] == config.DEFAULTS["stop"]
 
 
 BAD = [

@@ -27,7 +27,7 @@ import zlib
 import numpy as np
 import pytest
 
-from conftest import assert_bitwise_equal, describe, mpipack_run
+from conftest import assert_bitwise_equal, describe, mpipack_run, step_each
 from mpipack import config, exactsum, kernels, neighbors, solver
 from mpipack.comm import Comm
 
@@ -324,14 +324,16 @@ def test_outer_loop_matches_reference(comm, case):
     s.initialise()
     g0 = s.gather()
     ref = ref_outer(method, form, g0["x"], g0["diam"], alpha, beta, tau, l_inner, eps_inner, n_outer)
-    total_inner = 0
-    for p, (x_ref, lam_ref, inner_ref) in enumerate(ref):
-        fig = s.step()
+    seen = {"total_inner": 0}
+
+    def check(fig):
+        p = fig["iteration"] - 1
+        x_ref, lam_ref, inner_ref = ref[p]
         g = s.gather()
         assert fig["iteration"] == p + 1
         assert fig["inner_iterations"] == inner_ref, (p, fig["inner_iterations"], inner_ref)
-        total_inner += inner_ref
-        assert s.counters["inner_iterations"] == total_inner
+        seen["total_inner"] += inner_ref
+        assert s.counters["inner_iterations"] == seen["total_inner"]
         assert np.allclose(g["x"], x_ref, rtol=1e-10, atol=1e-10), (p, np.abs(g["x"] - x_ref).max())
         lam = np.zeros((n, n))
         gi, gj = g["pairs_gid"][:, 0], g["pairs_gid"][:, 1]
@@ -342,6 +344,9 @@ def test_outer_loop_matches_reference(comm, case):
         x_prev_ref = ref[p - 1][0] if p > 0 else g0["x"]
         rel = np.linalg.norm(x_ref - x_prev_ref) / np.linalg.norm(x_prev_ref)
         assert fig["relative_change"] == pytest.approx(rel, rel=1e-8)
+
+    step_each(s, n_outer, check)
+    assert s.state.iteration == n_outer
     assert np.count_nonzero(np.triu(ref[-1][1], 1)) > 3, "test set-up: want active pairs"
     if eps_inner > 0:
         assert any(r[2] < l_inner for r in ref), "test set-up: the inner criterion should stop"
@@ -370,13 +375,17 @@ def two_spheres(comm, method, form, spacing, alpha, beta, tau=0.1, d=1.0):
 
 
 def outer_distances(s, steps):
-    """[(r_{p+1}, multiplier of the pair or 0, centre of mass)] for p = 0..steps-1."""
+    """[(r_{p+1}, multiplier of the pair or 0, centre of mass, relative change (4.3))] for
+    p = 0..steps-1."""
     out = []
-    for _ in range(steps):
-        s.step()
+
+    def record(fig):
         g = s.gather()
         lam = float(g["pairs_lambda"][0]) if g["pairs_lambda"].shape[0] else 0.0
-        out.append((float(g["x"][0, 0] - g["x"][1, 0]), lam, float(g["x"].mean())))
+        out.append((float(g["x"][0, 0] - g["x"][1, 0]), lam, float(g["x"].mean()),
+                    fig["relative_change"]))
+
+    step_each(s, steps, record)
     return out
 
 
@@ -387,11 +396,11 @@ def test_nap_ns_lemma_a1(comm, r0, alpha, beta):
     d = 1.0
     s = two_spheres(comm, "nap", "NS", r0, alpha, beta, d=d)
     hist = outer_distances(s, 3)
-    for p, (r, lam, com) in enumerate(hist):
+    for p, (r, lam, com, _) in enumerate(hist):
         assert abs(r - d) < 1e-9, (p, r)
         assert abs(lam - d / 2) < 1e-9, (p, lam)
         assert abs(com - (-r0 / 2)) < 1e-12, "the centre of mass must not move"
-    assert s.last["relative_change"] < 1e-9, "(4.3) should fire on the second outer iteration"
+    assert hist[-1][3] < 1e-9, "(4.3) should fire on the second outer iteration"
 
 
 @pytest.mark.parametrize("r0", [1.7, 0.4])
@@ -402,7 +411,7 @@ def test_nap_s_lemma_a2(comm, r0):
     s = two_spheres(comm, "nap", "S", r0, 0.5, 0.2, d=d)
     hist = outer_distances(s, 4)
     r_prev, r_exact = r0, r0
-    for p, (r, lam, com) in enumerate(hist):
+    for p, (r, lam, com, _) in enumerate(hist):
         want = (d * d + r_prev * r_prev) / (2 * r_prev)
         assert r == pytest.approx(want, rel=1e-9, abs=1e-9), (p, r, want)
         r_exact = (d * d + r_exact * r_exact) / (2 * r_exact)
@@ -424,7 +433,7 @@ def test_nav_ns_lemma_a3(comm, r0):
     s = two_spheres(comm, "nav", "NS", r0, 0.5, 40.0, tau=tau, d=d)
     hist = outer_distances(s, 3)
     r_prev = r0
-    for p, (r, lam, com) in enumerate(hist):
+    for p, (r, lam, com, _) in enumerate(hist):
         assert abs(r - d) < 1e-9, (p, r)
         assert lam == pytest.approx((d - r_prev * (1 - tau)) / (2 * tau * tau), rel=1e-7), (p, lam)
         assert abs(com - (-r0 / 2)) < 1e-12
@@ -439,7 +448,7 @@ def test_nav_ns_from_afar_stops_at_d(comm):
     s = two_spheres(comm, "nav", "NS", 1.7, 0.5, 40.0, tau=tau, d=d)
     hist = outer_distances(s, 8)
     r_exact = 1.7
-    for p, (r, lam, com) in enumerate(hist):
+    for p, (r, lam, com, _) in enumerate(hist):
         r_exact = max(d, (1 - tau) * r_exact)
         assert r == pytest.approx(r_exact, rel=1e-9), (p, [h[0] for h in hist])
     assert hist[-1][1] == pytest.approx(d / (2 * tau), rel=1e-7)

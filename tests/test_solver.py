@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 
+from conftest import step_each
 from mpipack import config, init, solver
 from mpipack.comm import Comm
 
@@ -86,35 +87,36 @@ def test_solver_trajectory_matches_reference(comm, case):
     src, sets = CASES[case]
     iters = 150
     scene = config.load(src, sets + ["stop.eps=0", f"stop.max_iter={iters}"])
-    m = scene["method"]
+    m = scene.method
     s = solver.Solver(scene, comm)
     s.initialise()
     gids = np.arange(s.n, dtype=np.int64)
     x = init.positions(scene, gids)
-    p = scene["particles"]
-    diam = init.diameters(scene["seed"], gids, p["diameter"], config.d_max(scene))
+    p = scene.particles
+    diam = init.diameters(scene.seed, gids, p.diameter, config.d_max(scene))
     assert s.state.n_local == s.n
     # the solver may keep its local particles in any order (e.g. spatial): compare by gid
     assert np.array_equal(np.sort(s.state.gid[: s.n]), gids)
     assert np.array_equal(by_gid(s, s.state.x), x)
-    xp = x.copy()
-    lam = np.zeros((s.n, s.n))
-    worst = 0.0
-    for it in range(iters):
-        fig = s.step()
-        x_new, lam = ref_step(m["name"], m["form"], x, xp, diam, lam, m["alpha"], m["beta"],
-                              m["gamma"], m["c"], it > 0)
+    ref = {"x": x, "xp": x.copy(), "lam": np.zeros((s.n, s.n))}
+
+    def check(fig):
+        it = fig["iteration"] - 1
+        x, xp, lam = ref["x"], ref["xp"], ref["lam"]
+        x_new, lam = ref_step(m.name, m.form, x, xp, diam, lam, m.alpha, m.beta, m.gamma, m.c, it > 0)
         rel = math.sqrt(((x_new - x) ** 2).sum() / (x ** 2).sum())  # (4.3)
-        xp, x = x, x_new
+        ref.update(xp=x, x=x_new, lam=lam)
         got = by_gid(s, s.state.x)
-        err = np.abs(got - x).max() / max(1.0, np.abs(x).max())
-        worst = max(worst, err)
+        err = np.abs(got - x_new).max() / max(1.0, np.abs(x_new).max())
         assert err < 1e-10, f"iteration {it + 1}: |X_solver - X_ref| = {err:.3e}"
         assert np.allclose(solver_lambda_matrix(s), lam, rtol=1e-8, atol=1e-10), f"iteration {it + 1}"
         assert fig["relative_change"] == pytest.approx(rel, rel=1e-9)
         assert fig["active_pairs"] == np.count_nonzero(np.triu(lam) > 0)
+
+    step_each(s, iters, check)
+    assert s.state.iteration == iters
     assert s.counters["rebuilds"] > 1, "test set-up: want rebuilds during the run"
-    assert np.count_nonzero(lam) > 0, "test set-up: want contacts"
+    assert np.count_nonzero(ref["lam"]) > 0, "test set-up: want contacts"
 
 
 def test_stopping_criterion_4_3(comm):
@@ -128,7 +130,8 @@ def test_stopping_criterion_4_3(comm):
     assert res["relative_change"] < 1e-6
     s = solver.Solver(config.load("two-spheres", sets[:4] + ["stop.eps=0"]), comm)
     s.initialise()
-    rels = [s.step()["relative_change"] for _ in range(k)]
+    rels = []
+    step_each(s, k, lambda fig: rels.append(fig["relative_change"]))
     assert rels[-1] == res["relative_change"]
     assert min(rels[:-1]) >= 1e-6, "run() should have stopped earlier"
 
@@ -155,6 +158,8 @@ def test_far_from_origin_is_not_divergence(comm):
     s = solver.Solver(scene, comm)
     s.initialise()
     assert np.abs(s.state.x).max() == 5e6
-    for _ in range(50):
-        s.step()  # raises NumericalError at iteration 1
+
+    def check(fig):  # a false alarm would raise NumericalError at iteration 1
         assert np.all(np.isfinite(s.state.x)) and np.abs(s.state.x).max() <= 5e6
+
+    step_each(s, 50, check)

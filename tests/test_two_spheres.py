@@ -10,6 +10,7 @@ Runs in-process on one rank (comm.Comm() over MPI.COMM_WORLD of the pytest proce
 import numpy as np
 import pytest
 
+from conftest import step_each
 from mpipack import config, init, solver
 from mpipack.comm import Comm
 
@@ -44,7 +45,7 @@ def assert_contact(g, res, d, lam_expected):
 def test_daha_ns_two_spheres(comm, d):
     """Lemma 3.5 (Table 1 parameters alpha=0.3, beta=3, c=2): distance d, lambda = d/2."""
     scene, s, res, g = run_two(comm, [f"particles.diameter={d}"])
-    assert scene["method"]["form"] == "NS" and scene["method"]["name"] == "daha"
+    assert scene.method.form == "NS" and scene.method.name == "daha"
     assert res["converged"], res
     assert res["iterations"] < 10000, res
     assert_contact(g, res, d, d / 2)
@@ -65,7 +66,7 @@ def test_daha_s_two_spheres(comm, d):
     scene, s, res, g = run_two(comm, [f"particles.diameter={d}", "method.form=S",
                                       f"method.alpha={alpha}", f"method.beta={beta}",
                                       f"method.c={c}"])
-    assert scene["method"]["gamma"] == pytest.approx(np.sqrt(alpha * beta), rel=1e-15)
+    assert scene.method.gamma == pytest.approx(np.sqrt(alpha * beta), rel=1e-15)
     assert res["converged"], res
     assert_contact(g, res, d, 0.25)
 
@@ -85,13 +86,15 @@ def trajectory(comm, sets, iters):
     s = solver.Solver(scene, comm)
     s.initialise()
     dist, lam, rel = np.empty(iters), np.empty(iters), np.empty(iters)
-    for it in range(iters):
-        fig = s.step()
-        st = s.state
+
+    def record(fig):
+        it, st = fig["iteration"] - 1, s.state
         dist[it] = abs(st.x[1, 0] - st.x[0, 0])
         row = st.pair_lambda
         lam[it] = row.max() if row.size else 0.0
         rel[it] = fig["relative_change"]
+
+    step_each(s, iters, record)
     return dist, lam, rel
 
 

@@ -16,6 +16,8 @@ import time
 
 import numpy as np
 
+from .. import post
+
 # Paper, Table 1 (N = 7, 20 standard Gaussian starts): T, sigma^2, orders of (A, W - 3)
 EPS_T1 = ((1e-4, 1e-7), (1e-6, 1e-9), (1e-8, 1e-11))
 PAPER_T = {"DAHA-NS": (103, 145, 198), "DAHA-S": (85, 133, 182), "NAP-NS": (81, 107, 131),
@@ -49,7 +51,7 @@ PAPER_T2 = {("AHA", "S"): False, ("AHA", "NS"): False, ("DAHA", "S"): True, ("DA
 
 def scene_for(n, dim, seed, params, eps, eps_inner=1e-9, max_iter=100000, extra=()):
     """A validated scene dict: N spheres, standard Gaussian start, the given method params."""
-    from . import config
+    from .. import config
     sets = [f"n={n}", f"dim={dim}", f"stop.eps={eps}", f"stop.max_iter={max_iter}",
             f"method.eps_inner={eps_inner}", "output.progress_every=0"]
     for k, v in params.items():
@@ -75,42 +77,45 @@ def run_single(scene, budget=None, trace=False, comm=None):
     methods, inner iterations for nested ones). Returns a dict of results."""
     from mpi4py import MPI
 
-    from . import solver as solver_mod
-    from .comm import Comm
+    from .. import hooks, solver as solver_mod
+    from ..comm import Comm
     comm = comm or Comm(MPI.COMM_SELF)
     s = solver_mod.Solver(scene, comm)
     s.initialise()
-    eps = scene["stop"]["eps"]
-    max_iter = scene["stop"]["max_iter"]
-    nested = s.nested
+    eps = scene.stop.eps
     errs, work_axis = [], []
-    converged = False
+
+    def work():
+        return s.counters["inner_iterations"] if s.nested else s.state.iteration
+
+    def record(ctx):
+        errs.append(ctx.figures["relative_change"])
+        work_axis.append(work())
+
+    def budget_spent(ctx):
+        # (4.3) wins when it fires on the same iteration
+        if eps > 0 and ctx.figures["relative_change"] < eps:
+            return None
+        return hooks.STOP if work() >= budget else None
+
+    hook_list = ([hooks.Hook(record, every=1)] if trace else []) + \
+        ([hooks.Hook(budget_spent, every=1, name="budget")] if budget is not None else [])
     t0 = time.perf_counter()
-    fig = {"relative_change": math.nan}
     try:
-        while s.state.iteration < max_iter:
-            fig = s.step()
-            work = s.counters["inner_iterations"] if nested else s.state.iteration
-            if trace:
-                errs.append(fig["relative_change"])
-                work_axis.append(work)
-            if eps > 0 and fig["relative_change"] < eps:
-                converged = True
-                break
-            if budget is not None and work >= budget:
-                break
+        _, res = solver_mod.run(scene, comm, hooks=hook_list, solver=s)
         status = "ok"
     except solver_mod.NumericalError:
+        res = {"converged": False, "W": math.nan, "max_overlap": math.nan,
+               "relative_change": errs[-1] if errs else math.nan}
         status = "diverged"
     wall = time.perf_counter() - t0
-    final = s.finish() if status == "ok" else {"W": math.nan, "max_overlap": math.nan}
     g = s.gather()
-    out = {"converged": converged, "status": status, "outer": s.state.iteration,
+    out = {"converged": res["converged"], "status": status, "outer": s.state.iteration,
            "inner": s.counters["inner_iterations"],
-           "T": s.counters["inner_iterations"] if nested else s.state.iteration,
-           "W": final["W"], "max_overlap": final["max_overlap"], "wall": wall,
-           "relative_change": fig["relative_change"]}
-    if g is not None and scene["dim"] == 2 and scene["n"] <= 200 and status == "ok":
+           "T": s.counters["inner_iterations"] if s.nested else s.state.iteration,
+           "W": res["W"], "max_overlap": res["max_overlap"], "wall": wall,
+           "relative_change": res["relative_change"]}
+    if g is not None and scene.dim == 2 and scene.n <= 200 and status == "ok":
         out["overlap_area"] = overlap_area_sum(g["x"])
     if trace:
         out["trace"] = (work_axis, errs)
@@ -291,63 +296,27 @@ def fig4_data(comm, cs, seeds, iters):
 
 def large_2d(comm, quick, extra_iters):
     """Section 4.3: N = 2000 DAHA-S to eps = 1e-5, then extra_iters more iterations."""
-    from . import config, solver as solver_mod
+    from .. import config, solver as solver_mod
     scene = config.load("default", ["output.progress_every=0"] + (["n=500"] if quick else []))
     t0 = time.perf_counter()
-    s = solver_mod.Solver(scene, comm)
-    s.initialise()
-    while s.state.iteration < scene["stop"]["max_iter"]:
-        fig = s.step()
-        if fig["relative_change"] < scene["stop"]["eps"]:
-            break
+    s, first = solver_mod.run(scene, comm)
     fired_at = s.state.iteration
     wall = time.perf_counter() - t0
-    f1 = s.finish()
     g1 = s.gather()
-    for _ in range(extra_iters):
-        s.step()
-    f2 = s.finish()
+    _, later = solver_mod.run(scene.replace(stop={"eps": 0.0, "max_iter": fired_at + extra_iters}),
+                              comm, solver=s)
     g2 = s.gather()
-    return {"n": scene["n"], "fired_at": fired_at, "wall": wall, "first": (f1, g1),
-            "later": (f2, g2), "extra": extra_iters}
+    return {"n": scene.n, "fired_at": fired_at, "wall": wall, "first": (first, g1),
+            "later": (later, g2), "extra": extra_iters}
 
 
 def large_3d(comm, quick):
-    from . import config, solver as solver_mod
+    from .. import config, solver as solver_mod
     scene = config.load("paper-3d", ["output.progress_every=0"] + (["n=500", "stop.max_iter=2000"] if quick else []))
     t0 = time.perf_counter()
-    s = solver_mod.Solver(scene, comm)
-    s.initialise()
-    while s.state.iteration < scene["stop"]["max_iter"]:
-        s.step()
-    f = s.finish()
-    return {"n": scene["n"], "iters": s.state.iteration, "wall": time.perf_counter() - t0,
+    s, f = solver_mod.run(scene, comm)
+    return {"n": scene.n, "iters": s.state.iteration, "wall": time.perf_counter() - t0,
             "final": f, "g": s.gather()}
-
-
-def density_profile(x, diam, radii):
-    """phi(R): covered fraction of the ball B(Xbar, R) for each R (serial, gathered data)."""
-    from . import exactsum, metrics
-    xbar = x.mean(axis=0)
-    acc = exactsum.new_accumulator(len(radii))
-    metrics.covered_measure(np.ascontiguousarray(x), diam, x.shape[0], xbar, np.asarray(radii, float), acc)
-    return np.array([exactsum.value(acc, q) / metrics.ball_measure(x.shape[1], R) for q, R in enumerate(radii)])
-
-
-def neighbour_counts(x, diam, factor=1.1):
-    """Number of neighbours of each sphere with centre distance < factor * d_ij."""
-    from . import neighbors
-    n = x.shape[0]
-    x = np.ascontiguousarray(x)
-    off, pj, _, _ = neighbors.build_rows(x, n, n, np.arange(n, dtype=np.int64), diam,
-                                         (factor - 1.0) * float(diam.max()), np.zeros(n + 1, np.int64),
-                                         np.empty(0, np.int64), np.empty(0))
-    counts = np.zeros(n, dtype=np.int64)
-    for i in range(n):
-        js = pj[off[i]:off[i + 1]]
-        r = np.sqrt(((x[js] - x[i]) ** 2).sum(axis=1))
-        counts[i] = int(np.sum(r < factor * 0.5 * (diam[i] + diam[js])))
-    return counts
 
 
 # ---- report -------------------------------------------------------------------------------------
@@ -422,7 +391,7 @@ def _plots(out, f3, f4, f5, f6, l2, l3, prof2, prof3, radii2, radii3, counts3):
 
 
 def main(args):
-    from .comm import Comm
+    from ..comm import Comm
     comm = Comm()
     quick = args.quick
     out = args.out or os.path.join("mpipack-out", "paper-quick" if quick else "paper")
@@ -463,13 +432,13 @@ def main(args):
         g2b = l2["later"][1]
         rmax2 = float(np.sqrt(((g2["x"] - g2["x"].mean(0)) ** 2).sum(1)).max())
         radii2 = np.linspace(1.0, rmax2, 60)
-        prof2 = density_profile(g2["x"], g2["diam"], radii2)
-        prof2b = density_profile(g2b["x"], g2b["diam"], radii2)
+        prof2 = post.density_profile(g2["x"], g2["diam"], radii2)
+        prof2b = post.density_profile(g2b["x"], g2b["diam"], radii2)
         g3 = l3["g"]
         rmax3 = float(np.sqrt(((g3["x"] - g3["x"].mean(0)) ** 2).sum(1)).max())
         radii3 = np.linspace(1.0, rmax3, 60)
-        prof3 = density_profile(g3["x"], g3["diam"], radii3)
-        counts3 = neighbour_counts(g3["x"], g3["diam"])
+        prof3 = post.density_profile(g3["x"], g3["diam"], radii3)
+        counts3 = post.neighbour_counts(g3["x"], g3["diam"])
         files = _plots(out, f3, f4, f5, f6, l2, l3, prof2, prof3, radii2, radii3, counts3)
         timing["total"] = time.perf_counter() - t_start
         text = _report(comm, quick, t1, t2, f3, f5, f6, l2, l3, radii2, prof2, prof2b, radii3, prof3,
