@@ -174,6 +174,7 @@ def _run(comm, scene, out, args):
         "particle_iterations_per_second": res["particle_iterations_per_second"],
         "particle_iterations_per_second_per_rank": res["particle_iterations_per_second"] / comm.size,
         "loop_seconds": res["loop_seconds"], "setup_seconds": res["setup_seconds"],
+        "first_iteration_seconds": res["first_iteration_seconds"],
         "active_pairs": res["active_pairs"], "rebuilds": res["rebuilds"],
         "rebalances": res["rebalances"], "far_ghosts": res["far_ghosts"],
         "max_imbalance": res["max_imbalance"], "inner_iterations": res["inner_iterations"],

@@ -7,7 +7,6 @@ converged packing, so the union is taken as the sum of the sphere-ball intersect
 
 import math
 
-import numpy as np
 from numba import njit
 
 from . import exactsum

@@ -14,7 +14,8 @@ One iteration of DAHA / AHA, n -> n+1 (every rank, in lock step):
     stop        ||X^{n+1} - X^n|| / ||X^n|| < eps   (4.3), max_iter, or a hook's request
 
 NAP and NAV run the same step/reduce/forward cycle for each inner iteration, with the
-constraints linearised about the outer iterate X^p (see ``Solver._outer_step``).
+constraints linearised about the outer iterate X^p (``nested.outer_step``). End-of-run
+figures, the state by gid and gathers are in ``measures``.
 
 Every decision (stop, rebuild, rebalance, numerical failure, hook schedules) is taken from
 reduced numbers, so all ranks take it on the same iteration. Sums are exact (``exactsum``), pair
@@ -33,23 +34,18 @@ import time
 import numpy as np
 
 from . import comm as comm_mod
-from . import domain, exactsum, hooks as hooks_mod, init, kernels, metrics, neighbors
+from . import domain, exactsum, hooks as hooks_mod, init, kernels, measures, neighbors, nested
+from . import rebuild as rebuild_mod
 from .reduction import Reduction
-from .state import BlockState, State, gather_rows
-from .timers import (BALANCE, BORDERS, EXCHANGE, FORWARD, HOOKS, REDUCE, ROWS, STEP,
-                     PhaseTimers, format_report)
+from .state import State
+from .timers import FORWARD, HOOKS, REDUCE, STEP, PhaseTimers, format_report, process_age_seconds
 
 
 class NumericalError(RuntimeError):
     """NaN, Inf or divergence in the state."""
 
 
-class TooDenseError(RuntimeError):
-    """The pair rows of the current configuration would not fit in memory."""
-
-
-# bytes per pair-row entry at the peak of a build (entry 12 B, growth copies, temporaries)
-_BYTES_PER_ENTRY_PEAK = 40
+TooDenseError = rebuild_mod.TooDenseError
 
 
 def _available_memory_bytes():
@@ -103,7 +99,7 @@ class Solver:
         # available memory (under a batch system's memory limit, set the key)
         gib = scene.neighbor.max_pair_gib
         budget = gib * 2 ** 30 if gib is not None else _available_memory_bytes() / comm.ranks_per_node
-        self._max_entries = int(budget / _BYTES_PER_ENTRY_PEAK)
+        self._max_entries = int(budget / rebuild_mod.BYTES_PER_ENTRY_PEAK)
 
     # ---- set-up ----------------------------------------------------------------------------
     def initialise(self, source=None):
@@ -151,7 +147,7 @@ class Solver:
     def step(self):
         """Advance one (outer) iteration; returns the reduced figures of this iteration."""
         if self.nested:
-            return self._outer_step()
+            return nested.outer_step(self)
         st = self.state
         fig = self._advance(st.x_prev, self.xbar)  # (2.10b) then (2.10a)
         self.xbar = fig.pop("xbar")
@@ -216,211 +212,26 @@ class Solver:
                 self.rebuild()
                 return
             self._disp_bound = exact
-        comm_mod.forward(self.comm, self.plan, st.x, st.n_local)
+        if self.comm.size > 1:  # one rank has no ghosts to refresh
+            comm_mod.forward(self.comm, self.plan, st.x, st.n_local)
         self.timers.lap(FORWARD)
 
-    def _outer_step(self):
-        """One outer iteration p -> p+1 of NAP (2.16) or NAV (2.17).
-
-        The constraints are linearised about X^p (kept in x_lin, ghosts included, and carried
-        through rebuilds). Inner steps run until the inner criterion, (4.1) for NAP:
-        ||X^{p,n+1} - X^{p,n}|| / ||X^{p,n}|| < eps_inner, (4.2) for NAV:
-        ||V^{p,n+1} - V^{p,n}|| / ||X^p|| < eps_inner / tau, or l_inner steps. Then
-        lambda^{p+1} from the last inner iterate, and the outer criterion (4.3) is measured.
-        NAV's inner variable is Y = X^p + tau V; it starts from V^{p,0} = V^p, i.e.
-        Y = X^p + (X^p - X^{p-1}) (V^0 = 0).
-        """
-        st, m = self.state, self.params
-        n = st.n_local
-        st.x_lin[:] = st.x  # X^p, ghosts are current
-        nav = m.name == "nav"
-        xbar_p = self.xbar.copy()
-        if nav:
-            red = Reduction().add_exact("sums", [("x", self.dim), ("xx", 1)]).begin()
-            kernels.local_sums(st.x, n, red.acc("sums"))
-            norm_p = math.sqrt(red.reduce(self.comm).value("xx"))  # ||X^p||, for (4.2)
-            st.x[:n] = 2.0 * st.x_lin[:n] - st.x_prev[:n]
-            # the warm start moves every particle by |X^p - X^{p-1}|: it counts for the rows
-            jump2 = neighbors.max_displacement2(st.x, st.x_lin, n)
-            self._refresh_ghosts(math.sqrt(self.comm.allreduce(np.array([jump2]), op="max")[0]))
-        inner = 0
-        fig = {}
-        for inner in range(1, int(m.l_inner) + 1):
-            fig = self._advance(st.x_lin, xbar_p if nav else self.xbar)
-            self.xbar = fig.pop("xbar")
-            if nav:
-                rel_inner = math.sqrt(fig["change2"]) / norm_p if norm_p > 0 else 0.0
-            else:
-                rel_inner = fig["relative_change"]
-            if rel_inner < m.eps_inner:
-                break
-        self.counters["inner_iterations"] += inner
-        # (2.16b) / (2.17b) for the last inner iterate: lambda^{p+1}; positions are discarded
-        scratch = Reduction().add_exact("step", [("x", self.dim), ("dx2", 1), ("xx2", 1)]) \
-            .add_max("step", [("step2", 1), ("overlap", 1)]).begin()
-        self._kernel(st.x, st.x_lin, st.x_new, st.n_local, st.diam, st.pair_offsets, st.pair_j,
-                     st.pair_lambda, self.xbar, *self.coeffs, self.beta, not st.lambda_fresh,
-                     scratch.acc("step"), scratch.maxima("step"))
-        st.lambda_fresh = True
-        # outer criterion (4.3): ||X^{p+1} - X^p|| / ||X^p||
-        red = Reduction().add_exact("change", [("d2", 1), ("p2", 1)]).begin()
-        kernels.change_sums(st.x, st.x_lin, st.n_local, red.acc("change"))
-        red.reduce(self.comm)
-        d2, p2 = red.value("d2"), red.value("p2")
-        st.x_prev[:st.n_local] = st.x_lin[:st.n_local]  # X^{p}, for NAV's V^{p+1}
-        st.iteration += 1
-        fig["relative_change"] = math.sqrt(d2 / p2) if p2 > 0 else (0.0 if d2 == 0 else math.inf)
-        fig["iteration"] = st.iteration
-        fig["inner_iterations"] = inner
-        return fig
-
-    # ---- rebuild: exchange, (balance), borders, rows -----------------------------------------
     def rebuild(self, rebalance=False, hist=None):
-        """Exchange (and rebalance), sort locals by cell, borders, pair rows. Collective.
+        """Exchange (and rebalance), sort locals by cell, borders, pair rows (``rebuild``)."""
+        rebuild_mod.rebuild(self, rebalance, hist)
 
-        hist: the locals' pair history (offsets, partner gid, lambda); default: from the rows.
-        """
-        st, comm, t = self.state, self.comm, self.timers
-        if hist is None:
-            hist = neighbors.history(st.n_local, st.gid, st.pair_offsets, st.pair_j, st.pair_lambda)
-        part = st.local_fields()
-        if comm.size > 1:
-            if rebalance:
-                self._balance(part)
-            part, hist = comm_mod.exchange(comm, self.partition.owners(part["x"], part["x"].shape[0]), part, hist)
-            t.lap(EXCHANGE)
-            # migration may have unbalanced the load: check now (one small allreduce, only at
-            # rebuilds) rather than wait for the next rebuild, which may be far away
-            n_here = part["x"].shape[0]
-            max_local = comm.allreduce(np.array([n_here], dtype=np.int64), op="max")[0]
-            if not rebalance and max_local * comm.size > self.scene.neighbor.rebalance * self.n:
-                self._balance(part)
-                part, hist = comm_mod.exchange(comm, self.partition.owners(part["x"], n_here), part, hist)
-                t.lap(EXCHANGE)
-        # local particles in cell order: neighbours sit close in memory for the step kernel
-        perm = neighbors.spatial_order(part["x"], part["x"].shape[0], self.r_ghost)
-        part = {k: v[perm] for k, v in part.items()}
-        h_off, h_idx = gather_rows(hist[0], perm)
-        hist = (h_off, hist[1][h_idx], hist[2][h_idx])
-        t.lap(ROWS)
-        ghost_keys = ("x", "gid", "diam") + (("x_lin",) if "x_lin" in part else ())
-        if comm.size > 1:
-            p = self.partition
-            offsets, idx = domain.ghost_destinations(part["x"], part["x"].shape[0], comm.rank,
-                                                     p.lo, p.hi, self.r_ghost)
-            self.plan, ghost, n_far = comm_mod.borders(comm, offsets, idx,
-                                                       {k: part[k] for k in ghost_keys}, hist[1])
-            self.counters["far_ghosts"] += n_far
-            t.lap(BORDERS)
-        else:
-            ghost = {k: part[k][:0] for k in ghost_keys}
-        lam_fresh = st.lambda_fresh
-        st.set_particles(part, ghost)
-        st.lambda_fresh = lam_fresh
-        st.pair_offsets, st.pair_j, st.pair_lambda, missing = neighbors.build_rows(
-            st.x, st.n_local, st.n_total, st.gid, st.diam, self.skin, *hist,
-            max_entries=self._max_entries)
-        too_dense = comm.allreduce(np.array([1 if missing < 0 else 0]), op="max")[0]
-        if too_dense:
-            raise TooDenseError(
-                f"the configuration is too dense for memory: the pair rows of {self.n} spheres "
-                f"would need more than {self._max_entries * _BYTES_PER_ENTRY_PEAK / 2**30:.1f} GiB "
-                f"on a rank; spread the start (raise init.sigma, now {self.scene.init.sigma:g}), "
-                f"use init.kind = \"lattice\", or run on more nodes (limit: neighbor.max_pair_gib)")
-        if missing:
-            raise RuntimeError(f"internal error: {missing} pair partners with lambda > 0 are missing "
-                               f"on rank {comm.rank} after the ghost exchange")
-        st.x_build = st.x[: st.n_local].copy()
-        self._disp_bound = 0.0
-        self.counters["rebuilds"] += 1
-        t.lap(ROWS)
-
-    def _balance(self, part):
-        self.partition = domain.rcb(self.comm, part["x"], part["x"].shape[0])
-        self.counters["rebalances"] += 1
-        self.timers.lap(BALANCE)
-
-    # ---- measures, end of run, state out -----------------------------------------------------
-    def measure(self, update_lambda=False):
-        """One metrics pass (collective): max overlap, KKT residual, complementarity, W.
-
-        With update_lambda, lambda is first brought up to date with X by (2.10b) (the end of a
-        DAHA/AHA run). Returns the reduced figures and, per local particle, pressure
-        mu_i = sum_j lambda_ij and active contacts (arrays of n_local rows).
-        """
-        st = self.state
-        red = Reduction().add_exact("met", [("kkt2", 1), ("gw2", 1)]) \
-            .add_max("met", [("overlap", 1), ("complementarity", 1), ("max_lambda", 1)]) \
-            .add_count("active").begin()
-        pressure = np.zeros(st.n_local)
-        contacts = np.zeros(st.n_local, dtype=np.int32)
-        n_active = self._metrics_kernel(st.x, st.n_local, st.diam, st.pair_offsets, st.pair_j,
-                                        st.pair_lambda, self.xbar, self.beta, update_lambda,
-                                        red.acc("met"), red.maxima("met"), pressure, contacts)
-        if update_lambda:
-            st.lambda_fresh = True
-        red.set_count("active", n_active)
-        red.reduce(self.comm)
-        kkt2, gw2 = red.value("kkt2"), red.value("gw2")
-        fig = {
-            "max_overlap": red.max("overlap"),
-            "W": 0.5 * gw2,
-            "kkt_residual": math.sqrt(kkt2 / gw2) if gw2 > 0 else (0.0 if kkt2 == 0 else math.inf),
-            "complementarity": red.max("complementarity"),
-            "max_lambda": red.max("max_lambda"),
-            "active_pairs": red.count("active") // 2,
-            "radius_of_gyration": math.sqrt(gw2 / self.n),
-        }
-        return fig, pressure, contacts
-
+    # ---- the state out (collective) -------------------------------------------------------
     def finish(self):
-        """Bring lambda up to date with the final X (2.10b) and return the final figures:
-        max overlap, W, KKT residual, packing density about the centre of mass, active pairs."""
-        # DAHA/AHA hold lambda^{n-1}: one (2.10b) pass makes it lambda^n; NAP/NAV end every
-        # outer iteration with fresh multipliers
-        fig, _, _ = self.measure(update_lambda=not self.state.lambda_fresh)
-        r_gyr = fig.pop("radius_of_gyration")
-        radius = r_gyr if r_gyr > 0 else self.d_max
-        red = Reduction().add_exact("cover", [("cover", 1)]).begin()
-        metrics.covered_measure(self.state.x, self.state.diam, self.state.n_local, self.xbar,
-                                np.array([radius]), red.acc("cover"))
-        fig["density"] = red.reduce(self.comm).value("cover") / metrics.ball_measure(self.dim, radius)
-        fig["density_radius"] = float(radius)
-        return fig
+        """Final figures (``measures.finish``): lambda brought up to date with the final X."""
+        return measures.finish(self)
 
     def export_state(self):
-        """This rank's ``BlockState`` (collective): the state by gid, free of the partition."""
-        st = self.state
-        part = st.local_fields()
-        hist = neighbors.history(st.n_local, st.gid, st.pair_offsets, st.pair_j, st.pair_lambda)
-        part, hist = comm_mod.to_gid_blocks(self.comm, self.n, part, hist)
-        r, P, N = self.comm.rank, self.comm.size, self.n
-        return BlockState(n_global=N, dim=self.dim, gid_lo=N * r // P, x=part["x"],
-                          x_prev=part["x_prev"], diam=part["diam"], hist_count=np.diff(hist[0]),
-                          hist_gid=hist[1], hist_lambda=hist[2], x_lin=part.get("x_lin"),
-                          iteration=st.iteration, lambda_fresh=st.lambda_fresh,
-                          counters=dict(self.counters))
+        """This rank's ``BlockState``: the state by gid, free of the partition."""
+        return measures.export_state(self)
 
     def gather(self, root=0):
-        """All particles and lambda > 0 pairs on ``root``, in gid order (for tests and small N).
-
-        Returns dict(gid, x, x_prev, diam, pairs_gid (k, 2) with gid_i < gid_j, pairs_lambda)
-        on root, None elsewhere.
-        """
-        st = self.state
-        n = st.n_local
-        gi, gj, lam = st.local_pairs()
-        keep = gi < gj
-        got = comm_mod.gather_by_gid(self.comm, {
-            "gid": st.gid[:n], "x": st.x[:n], "x_prev": st.x_prev[:n], "diam": st.diam[:n],
-            "_ragged": {"pi": gi[keep], "pj": gj[keep], "pl": lam[keep]}}, root=root)
-        if got is None:
-            return None
-        rg = got.pop("_ragged")
-        po = np.lexsort((rg["pj"], rg["pi"]))
-        got["pairs_gid"] = np.stack([rg["pi"][po], rg["pj"][po]], axis=1)
-        got["pairs_lambda"] = rg["pl"][po]
-        return got
+        """All particles and lambda > 0 pairs on ``root`` in gid order (tests, small N)."""
+        return measures.gather(self, root)
 
 
 # ---- the loop ---------------------------------------------------------------------------------
@@ -449,8 +260,11 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
     for h in hooks:
         if h.at_start:
             h(ctx)
+    first_iteration = math.nan
     while solver.state.iteration < max_iter:
         fig = solver.step()
+        if first_iteration != first_iteration:  # NaN until the first iteration is done
+            first_iteration = process_age_seconds()
         ctx.iteration, ctx.figures, ctx.elapsed = fig["iteration"], fig, fig["wall"]
         stop = False
         for h in hooks:
@@ -477,6 +291,9 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
         "relative_change": ctx.figures.get("relative_change", math.nan),
         "setup_seconds": setup_seconds,
         "loop_seconds": loop_seconds,
+        # from the start of the process (interpreter, imports, numba cache, set-up) to the
+        # end of the first iteration of this loop
+        "first_iteration_seconds": first_iteration,
         "particle_iterations_per_second": work / loop_seconds if loop_seconds > 0 else 0.0,
         **final,
         **solver.counters,

@@ -28,6 +28,20 @@ DESCRIPTIONS = {
 }
 
 
+def process_age_seconds():
+    """Seconds since this process started (Linux /proc), or NaN where that is not available:
+    for the time to the first iteration, which includes the interpreter and the imports."""
+    import os
+    try:
+        with open("/proc/self/stat") as f:
+            start_ticks = float(f.read().rsplit(")", 1)[1].split()[19])
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+        return uptime - start_ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return float("nan")
+
+
 class PhaseTimers:
     def __init__(self):
         self.seconds = np.zeros(len(PHASES))

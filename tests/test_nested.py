@@ -308,7 +308,7 @@ OUTER_CASES = {
 
 @pytest.mark.parametrize("case", list(OUTER_CASES))
 def test_outer_loop_matches_reference(comm, case):
-    """solver.Solver.step() for NAP / NAV on one rank, every pair in the rows (large skin):
+    """The outer iteration (nested.outer_step) of NAP / NAV on one rank, every pair in the rows (large skin):
     X^{p+1}, lambda^{p+1} and the inner step counts of Definitions 2.5 / 2.6 with (4.1) /
     (4.2). Covers what the kernel test cannot: which Xbar is used, the multipliers carried from
     one outer iteration to the next (lambda^{p,0} = lambda^p), NAV's V^{p,0} = V^p, the inner

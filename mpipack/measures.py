@@ -1,0 +1,95 @@
+"""What a run reports and hands over, from a ``Solver`` (collective calls): the metrics pass
+(max overlap, KKT residual, complementarity, W, per-sphere pressure), the final figures, the
+state by gid (``BlockState``) and gathers for tests and small N.
+"""
+
+import math
+
+import numpy as np
+
+from . import comm as comm_mod
+from . import metrics, neighbors
+from .reduction import Reduction
+from .state import BlockState
+
+
+def measure(s, update_lambda=False):
+    """One metrics pass (collective): max overlap, KKT residual, complementarity, W.
+
+    With update_lambda, lambda is first brought up to date with X by (2.10b) (the end of a
+    DAHA/AHA run). Returns the reduced figures and, per local particle, pressure
+    mu_i = sum_j lambda_ij and active contacts (arrays of n_local rows).
+    """
+    st = s.state
+    red = Reduction().add_exact("met", [("kkt2", 1), ("gw2", 1)]) \
+        .add_max("met", [("overlap", 1), ("complementarity", 1), ("max_lambda", 1)]) \
+        .add_count("active").begin()
+    pressure = np.zeros(st.n_local)
+    contacts = np.zeros(st.n_local, dtype=np.int32)
+    n_active = s._metrics_kernel(st.x, st.n_local, st.diam, st.pair_offsets, st.pair_j,
+                                    st.pair_lambda, s.xbar, s.beta, update_lambda,
+                                    red.acc("met"), red.maxima("met"), pressure, contacts)
+    if update_lambda:
+        st.lambda_fresh = True
+    red.set_count("active", n_active)
+    red.reduce(s.comm)
+    kkt2, gw2 = red.value("kkt2"), red.value("gw2")
+    fig = {
+        "max_overlap": red.max("overlap"),
+        "W": 0.5 * gw2,
+        "kkt_residual": math.sqrt(kkt2 / gw2) if gw2 > 0 else (0.0 if kkt2 == 0 else math.inf),
+        "complementarity": red.max("complementarity"),
+        "max_lambda": red.max("max_lambda"),
+        "active_pairs": red.count("active") // 2,
+        "radius_of_gyration": math.sqrt(gw2 / s.n),
+    }
+    return fig, pressure, contacts
+
+def finish(s):
+    """Bring lambda up to date with the final X (2.10b) and return the final figures:
+    max overlap, W, KKT residual, packing density about the centre of mass, active pairs."""
+    # DAHA/AHA hold lambda^{n-1}: one (2.10b) pass makes it lambda^n; NAP/NAV end every
+    # outer iteration with fresh multipliers
+    fig, _, _ = measure(s, update_lambda=not s.state.lambda_fresh)
+    r_gyr = fig.pop("radius_of_gyration")
+    radius = r_gyr if r_gyr > 0 else s.d_max
+    red = Reduction().add_exact("cover", [("cover", 1)]).begin()
+    metrics.covered_measure(s.state.x, s.state.diam, s.state.n_local, s.xbar,
+                            np.array([radius]), red.acc("cover"))
+    fig["density"] = red.reduce(s.comm).value("cover") / metrics.ball_measure(s.dim, radius)
+    fig["density_radius"] = float(radius)
+    return fig
+
+def export_state(s):
+    """This rank's ``BlockState`` (collective): the state by gid, free of the partition."""
+    st = s.state
+    part = st.local_fields()
+    hist = neighbors.history(st.n_local, st.gid, st.pair_offsets, st.pair_j, st.pair_lambda)
+    part, hist = comm_mod.to_gid_blocks(s.comm, s.n, part, hist)
+    r, P, N = s.comm.rank, s.comm.size, s.n
+    return BlockState(n_global=N, dim=s.dim, gid_lo=N * r // P, x=part["x"],
+                      x_prev=part["x_prev"], diam=part["diam"], hist_count=np.diff(hist[0]),
+                      hist_gid=hist[1], hist_lambda=hist[2], x_lin=part.get("x_lin"),
+                      iteration=st.iteration, lambda_fresh=st.lambda_fresh,
+                      counters=dict(s.counters))
+
+def gather(s, root=0):
+    """All particles and lambda > 0 pairs on ``root``, in gid order (for tests and small N).
+
+    Returns dict(gid, x, x_prev, diam, pairs_gid (k, 2) with gid_i < gid_j, pairs_lambda)
+    on root, None elsewhere.
+    """
+    st = s.state
+    n = st.n_local
+    gi, gj, lam = st.local_pairs()
+    keep = gi < gj
+    got = comm_mod.gather_by_gid(s.comm, {
+        "gid": st.gid[:n], "x": st.x[:n], "x_prev": st.x_prev[:n], "diam": st.diam[:n],
+        "_ragged": {"pi": gi[keep], "pj": gj[keep], "pl": lam[keep]}}, root=root)
+    if got is None:
+        return None
+    rg = got.pop("_ragged")
+    po = np.lexsort((rg["pj"], rg["pi"]))
+    got["pairs_gid"] = np.stack([rg["pi"][po], rg["pj"][po]], axis=1)
+    got["pairs_lambda"] = rg["pl"][po]
+    return got

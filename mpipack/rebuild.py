@@ -1,0 +1,93 @@
+"""Rebuild of one rank's particles, ghosts and pair rows on a ``Solver`` (collective).
+
+    exchange   particles migrate to the owner of their position, pair history with them
+    balance    a new RCB partition: at the start, and when max/mean particles per rank
+               exceeds neighbor.rebalance after a migration
+    rows       locals sorted by cell (memory locality), then borders (ghosts, far partners)
+               and the Verlet pair rows with lambda from the history
+
+Run when some particle may have moved more than skin/2 since the last build
+(``Solver._refresh_ghosts``). A rebuild never changes results: rows hold every pair within
+d_ij + skin and every pair with lambda > 0, summed in partner-gid order.
+"""
+
+import numpy as np
+
+from . import comm as comm_mod
+from . import domain, neighbors
+from .state import gather_rows
+from .timers import BALANCE, BORDERS, EXCHANGE, ROWS
+
+
+class TooDenseError(RuntimeError):
+    """The pair rows of the current configuration would not fit in memory."""
+
+
+# bytes per pair-row entry at the peak of a build (entry 12 B, growth copies, temporaries)
+BYTES_PER_ENTRY_PEAK = 40
+
+
+def rebuild(s, rebalance=False, hist=None):
+    """Exchange (and rebalance), sort locals by cell, borders, pair rows. Collective.
+
+    hist: the locals' pair history (offsets, partner gid, lambda); default: from the rows.
+    """
+    st, comm, t = s.state, s.comm, s.timers
+    if hist is None:
+        hist = neighbors.history(st.n_local, st.gid, st.pair_offsets, st.pair_j, st.pair_lambda)
+    part = st.local_fields()
+    if comm.size > 1:
+        if rebalance:
+            _balance(s, part)
+        part, hist = comm_mod.exchange(comm, s.partition.owners(part["x"], part["x"].shape[0]), part, hist)
+        t.lap(EXCHANGE)
+        # migration may have unbalanced the load: check now (one small allreduce, only at
+        # rebuilds) rather than wait for the next rebuild, which may be far away
+        n_here = part["x"].shape[0]
+        max_local = comm.allreduce(np.array([n_here], dtype=np.int64), op="max")[0]
+        if not rebalance and max_local * comm.size > s.scene.neighbor.rebalance * s.n:
+            _balance(s, part)
+            part, hist = comm_mod.exchange(comm, s.partition.owners(part["x"], n_here), part, hist)
+            t.lap(EXCHANGE)
+    # local particles in cell order: neighbours sit close in memory for the step kernel
+    perm = neighbors.spatial_order(part["x"], part["x"].shape[0], s.r_ghost)
+    part = {k: v[perm] for k, v in part.items()}
+    h_off, h_idx = gather_rows(hist[0], perm)
+    hist = (h_off, hist[1][h_idx], hist[2][h_idx])
+    t.lap(ROWS)
+    ghost_keys = ("x", "gid", "diam") + (("x_lin",) if "x_lin" in part else ())
+    if comm.size > 1:
+        p = s.partition
+        offsets, idx = domain.ghost_destinations(part["x"], part["x"].shape[0], comm.rank,
+                                                 p.lo, p.hi, s.r_ghost)
+        s.plan, ghost, n_far = comm_mod.borders(comm, offsets, idx,
+                                                   {k: part[k] for k in ghost_keys}, hist[1])
+        s.counters["far_ghosts"] += n_far
+        t.lap(BORDERS)
+    else:
+        ghost = {k: part[k][:0] for k in ghost_keys}
+    lam_fresh = st.lambda_fresh
+    st.set_particles(part, ghost)
+    st.lambda_fresh = lam_fresh
+    st.pair_offsets, st.pair_j, st.pair_lambda, missing = neighbors.build_rows(
+        st.x, st.n_local, st.n_total, st.gid, st.diam, s.skin, *hist,
+        max_entries=s._max_entries)
+    too_dense = comm.allreduce(np.array([1 if missing < 0 else 0]), op="max")[0]
+    if too_dense:
+        raise TooDenseError(
+            f"the configuration is too dense for memory: the pair rows of {s.n} spheres "
+            f"would need more than {s._max_entries * BYTES_PER_ENTRY_PEAK / 2**30:.1f} GiB "
+            f"on a rank; spread the start (raise init.sigma, now {s.scene.init.sigma:g}), "
+            f"use init.kind = \"lattice\", or run on more nodes (limit: neighbor.max_pair_gib)")
+    if missing:
+        raise RuntimeError(f"internal error: {missing} pair partners with lambda > 0 are missing "
+                           f"on rank {comm.rank} after the ghost exchange")
+    st.x_build = st.x[: st.n_local].copy()
+    s._disp_bound = 0.0
+    s.counters["rebuilds"] += 1
+    t.lap(ROWS)
+
+def _balance(s, part):
+    s.partition = domain.rcb(s.comm, part["x"], part["x"].shape[0])
+    s.counters["rebalances"] += 1
+    s.timers.lap(BALANCE)
