@@ -167,7 +167,8 @@ def _run(comm, scene, out, args):
     summary = {
         "scene": scene.name, "method": m.name, "form": m.form, "dim": scene.dim,
         "n": scene.n, "ranks": comm.size, "iterations": res["iterations"],
-        "converged": res["converged"], "stop_reason": res["stop_reason"], "wall_seconds": wall,
+        "converged": res["converged"], "stop_reason": res["stop_reason"],
+        "stop_rule": scene.stop.rule, "certificate": res["certificate"], "wall_seconds": wall,
         "relative_change": res["relative_change"], "max_overlap": res["max_overlap"],
         "W": res["W"], "kkt_residual": res["kkt_residual"], "complementarity": res["complementarity"],
         "density": res["density"], "density_radius": res["density_radius"],
@@ -193,12 +194,10 @@ def _run(comm, scene, out, args):
             json.dump(summary, f, indent=2)
             f.write("\n")
         if not args.quiet:
-            verdict = ("converged" if res["converged"] else
-                       ("ran the requested iterations" if scene.stop.eps == 0 else "NOT converged"))
-            print(f"mpipack: {verdict} after {res['iterations']} iterations in {wall:.2f} s "
+            print(f"mpipack: {_verdict(scene, res)} after {res['iterations']} iterations in {wall:.2f} s "
                   f"({res['particle_iterations_per_second']:.3g} particle-iterations/s)\n"
-                  f"  relative change {res['relative_change']:.3e}, max overlap {res['max_overlap']:.3e} d, "
-                  f"W = {res['W']:.10g}\n"
+                  f"  {_certificate_line(res['certificate'])}\n"
+                  f"  relative change {res['relative_change']:.3e}, W = {res['W']:.10g}\n"
                   f"  packing density {res['density']:.4f} in the ball of radius {res['density_radius']:.3g} "
                   f"(radius of gyration) about the centre of mass\n"
                   f"  summary: {os.path.join(out, 'summary.json')}", flush=True)
@@ -206,9 +205,35 @@ def _run(comm, scene, out, args):
             print("mpipack: time per phase of the loop", flush=True)
             for line in solver_mod.profile_lines(res):
                 print("  " + line, flush=True)
-    if scene.stop.eps > 0 and not res["converged"]:
-        return EXIT_NOT_CONVERGED
-    return EXIT_OK
+    return _exit_code(scene, res)
+
+
+def _verdict(scene, res):
+    if res["converged"]:
+        return "converged (certified)"
+    if scene.stop.rule == "eps" and res["stop_reason"] == "eps":
+        return "stopped by (4.3), NOT certified"
+    if scene.stop.rule == "eps" and scene.stop.eps == 0:
+        return "ran the requested iterations, not certified"
+    return "NOT converged"
+
+
+def _certificate_line(cert):
+    names = {"overlap": "max overlap {v:.3e} d", "kkt": "KKT residual {v:.3e}",
+             "settled": "W change over the window {v:.3e}"}
+    parts = [names[k].format(v=c["value"]) + (" ok" if c["ok"] else f" > {c['tol']:g}")
+             for k, c in cert.items()]
+    return "certificate: " + ", ".join(parts)
+
+
+def _exit_code(scene, res):
+    """0 when certified; under the paper's rule (stop.rule = "eps") also when (4.3) fired, or
+    when stop.eps = 0 asked for a fixed number of iterations; 4 otherwise."""
+    if res["converged"]:
+        return EXIT_OK
+    if scene.stop.rule == "eps" and (scene.stop.eps == 0 or res["stop_reason"] == "eps"):
+        return EXIT_OK
+    return EXIT_NOT_CONVERGED
 
 
 if __name__ == "__main__":

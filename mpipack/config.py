@@ -20,7 +20,8 @@ from typing import Optional
 
 METHODS = ("daha", "aha", "nap", "nav")
 FORMS = ("S", "NS")
-INIT_KINDS = ("gaussian", "lattice")
+INIT_KINDS = ("gaussian", "ball", "lattice")
+STOP_RULES = ("certified", "eps")
 
 DEFAULTS = {
     "name": "scene",
@@ -28,10 +29,11 @@ DEFAULTS = {
     "n": 2000,
     "seed": 1,
     "particles": {"diameter": 1.0, "diameter_max": None},
-    "init": {"kind": "gaussian", "sigma": 1.0, "spacing": 1.0, "jitter": 0.0},
+    "init": {"kind": "gaussian", "sigma": "auto", "fraction": 0.5, "spacing": 1.0, "jitter": 0.0},
     "method": {"name": "daha", "form": "S", "alpha": 7.8e-3, "beta": 2.8e3, "gamma": None, "c": 2.0,
                "l_inner": 10, "eps_inner": 1e-9, "tau": 0.1},
-    "stop": {"eps": 1e-5, "max_iter": 100000},
+    "stop": {"rule": "eps", "eps": 1e-5, "max_iter": 100000, "overlap": 1e-3, "kkt": 1e-2,
+             "w_rtol": 1e-4, "w_window": 0.1, "check_every": 50},
     "neighbor": {"skin": 0.3, "rebalance": 1.2, "max_pair_gib": None},
     "output": {"progress_every": 0.5, "dir": None},
 }
@@ -104,7 +106,8 @@ class Particles:
 @dataclass(frozen=True)
 class Init:
     kind: str
-    sigma: float
+    sigma: object  # a length, or "auto": the paper's N = 2000 peak density at any N
+    fraction: float
     spacing: float
     jitter: float
 
@@ -128,8 +131,14 @@ class Method:
 
 @dataclass(frozen=True)
 class Stop:
+    rule: str
     eps: float
     max_iter: int
+    overlap: float
+    kkt: float
+    w_rtol: float
+    w_window: float
+    check_every: int
 
 
 @dataclass(frozen=True)
@@ -256,7 +265,12 @@ def validate(scene):
     init = scene["init"]
     if init["kind"] not in INIT_KINDS:
         raise SceneError(f"key 'init.kind' must be one of {', '.join(INIT_KINDS)}, got {init['kind']!r}")
-    _num(scene, "init.sigma")
+    if init["sigma"] != "auto":
+        if isinstance(init["sigma"], str):
+            raise SceneError(f"key 'init.sigma' must be a positive number or \"auto\", got {init['sigma']!r}")
+        _num(scene, "init.sigma")
+    if not 0 < _num(scene, "init.fraction") <= 64:
+        raise SceneError(f"key 'init.fraction' (packing fraction of the ball start) must be in (0, 64], got {init['fraction']}")
     _num(scene, "init.spacing")
     _num(scene, "init.jitter", allow_zero=True)
     m = scene["method"]
@@ -272,8 +286,16 @@ def validate(scene):
     _num(scene, "method.tau")
     if _num(scene, "method.gamma", allow_zero=True, optional=True) is None:
         m["gamma"] = math.sqrt(alpha * beta)
+    if scene["stop"]["rule"] not in STOP_RULES:
+        raise SceneError(f"key 'stop.rule' must be one of {', '.join(STOP_RULES)}, got {scene['stop']['rule']!r}")
     _num(scene, "stop.eps", allow_zero=True)
     _num(scene, "stop.max_iter", int, allow_zero=True)
+    _num(scene, "stop.overlap")
+    _num(scene, "stop.kkt")
+    _num(scene, "stop.w_rtol")
+    if not 0 < _num(scene, "stop.w_window") <= 1:
+        raise SceneError(f"key 'stop.w_window' is a fraction of the run, in (0, 1], got {scene['stop']['w_window']}")
+    _num(scene, "stop.check_every", int)
     _num(scene, "neighbor.skin")
     _num(scene, "neighbor.max_pair_gib", optional=True)
     reb = _num(scene, "neighbor.rebalance")

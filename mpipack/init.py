@@ -95,12 +95,74 @@ def lattice_points(n, dim, spacing):
     return pts[order[:n]] * spacing
 
 
+@njit(cache=True)
+def uniform_ball(seed, gids, dim, radius):
+    """x[i] uniform in the ball B(0, radius) for each gid: a Gaussian direction and a radius
+    radius * u^(1/dim), from counter-based uniforms (streams 10..15)."""
+    n = gids.shape[0]
+    x = np.empty((n, dim))
+    e = np.empty(dim + 1)
+    for i in range(n):
+        g = gids[i]
+        for k in range(0, dim, 2):
+            u1 = uniform(seed, g, 10 + k)
+            u2 = uniform(seed, g, 11 + k)
+            rad = math.sqrt(-2.0 * math.log(u1))
+            e[k] = rad * math.cos(2.0 * math.pi * u2)
+            e[k + 1] = rad * math.sin(2.0 * math.pi * u2)
+        norm = 0.0
+        for k in range(dim):
+            norm += e[k] * e[k]
+        norm = math.sqrt(norm)
+        r = radius * uniform(seed, g, 15) ** (1.0 / dim)
+        for k in range(dim):
+            x[i, k] = r * e[k] / norm
+    return x
+
+
+def unit_ball_measure(dim):
+    return {1: 2.0, 2: math.pi, 3: 4.0 * math.pi / 3.0}[dim]
+
+
+def mean_diameter(scene):
+    p = scene.particles
+    return 0.5 * (p.diameter + p.d_max)
+
+
+def gaussian_sigma(scene):
+    """init.sigma, or for "auto" the spread that keeps the peak density of the paper's N = 2000
+    start (standard Gaussian, unit diameters) at any N: sigma = d_mean (N / 2000)^(1/b)."""
+    if scene.init.sigma != "auto":
+        return float(scene.init.sigma)
+    return mean_diameter(scene) * (scene.n / 2000.0) ** (1.0 / scene.dim)
+
+
+def ball_radius(scene):
+    """Radius of the ball whose packing fraction is init.fraction: N spheres of the mean
+    volume, sum of sphere measures = fraction * ball measure."""
+    p = scene.particles
+    if p.d_max > p.diameter:  # mean of (d/2)^b for d uniform in [d_min, d_max]
+        b = scene.dim
+        mean_rb = ((p.d_max / 2) ** (b + 1) - (p.diameter / 2) ** (b + 1)) / ((b + 1) * (p.d_max - p.diameter) / 2)
+    else:
+        mean_rb = (p.diameter / 2) ** scene.dim
+    return (scene.n * mean_rb / scene.init.fraction) ** (1.0 / scene.dim)
+
+
 def positions(scene, gids):
-    """Initial positions of the given gids for the scene's init block, shape (len(gids), dim)."""
+    """Initial positions of the given gids for the scene's init block, shape (len(gids), dim).
+
+    gaussian  N(0, sigma^2 I), sigma = init.sigma or "auto" (``gaussian_sigma``)
+    ball      uniform in the ball of packing fraction init.fraction (``ball_radius``)
+    lattice   the N points of a close-packed lattice nearest the origin, spacing
+              init.spacing, plus a Gaussian jitter of std init.jitter
+    """
     init = scene.init
     dim = scene.dim
     if init.kind == "gaussian":
-        return gaussian(scene.seed, gids, dim, float(init.sigma), np.zeros(dim))
+        return gaussian(scene.seed, gids, dim, gaussian_sigma(scene), np.zeros(dim))
+    if init.kind == "ball":
+        return uniform_ball(scene.seed, gids, dim, ball_radius(scene))
     if init.kind == "lattice":
         pts = lattice_points(scene.n, dim, float(init.spacing))
         x = pts[gids]

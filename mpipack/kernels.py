@@ -361,9 +361,14 @@ def nested_step(method, form):
 #   exact rows  KKT2 = sum_i |g_i|^2,  GW2 = sum_i |X_i - Xbar|^2 (= |grad W|^2 = 2 W)
 #   maxima      max overlap (d_ij - r)/d_ij, complementarity max lambda_ij |phi_ij|, max lambda_ij
 #   per particle pressure mu_i = sum_j lambda_ij (paper, Fig. 9) and active contacts
-# With update_lambda it first brings lambda up to date with X, (2.10b), exactly as the step
-# kernel would: the end of a DAHA run uses it for lambda^n of the final X^n.
+# lam_scale turns the stored multipliers into those of the KKT system (2.4): 1 for DAHA, AHA
+# and NAP; tau for NAV, whose multipliers belong to the velocity problem (2.6): lambda = tau mu.
+# lambda_mode: LAMBDA_STORED uses the stored multipliers; LAMBDA_UPDATE first brings them up
+# to date with X by (2.10b), exactly as the step kernel would, and stores them (the end of a
+# DAHA run: lambda^n of the final X^n); LAMBDA_PEEK uses those updated values without storing
+# them (a check in the middle of a run, which must not change the trajectory).
 
+LAMBDA_STORED, LAMBDA_UPDATE, LAMBDA_PEEK = 0, 1, 2
 MET_KKT2, MET_GW2 = 0, 1
 MET_OVERLAP, MET_COMPL, MET_LAMBDA = 0, 1, 2
 N_MET_MAX = 3
@@ -371,7 +376,7 @@ N_MET_MAX = 3
 
 @njit(cache=True, inline="always")
 def _pair_metrics(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, xbar, beta,
-                  update_lambda, acc, maxima, pressure, contacts):
+                  lambda_mode, lam_scale, acc, maxima, pressure, contacts):
     dim = x.shape[1]
     fbuf = exactsum.staging(acc)
     g = np.zeros(dim)
@@ -403,11 +408,13 @@ def _pair_metrics(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, xba
                 r = np.sqrt(r2)
                 phi = dij - r
             lam = pair_lambda[e]
-            if update_lambda:
+            if lambda_mode != LAMBDA_STORED:
                 lam = lam + beta * phi
                 if lam < 0.0:
                     lam = 0.0
-                pair_lambda[e] = lam
+                if lambda_mode == LAMBDA_UPDATE:
+                    pair_lambda[e] = lam
+            lam = lam * lam_scale
             if phi > 0.0:
                 if form == SMOOTH:
                     if r2 < min_ratio2 * (dij * dij):
@@ -446,18 +453,18 @@ def _pair_metrics(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, xba
 
 
 @njit(cache=True)
-def metrics_s(x, n_local, diam, po, pj, pl, xbar, beta, upd, acc, mx, pressure, contacts):
-    return _pair_metrics(SMOOTH, x, n_local, diam, po, pj, pl, xbar, beta, upd, acc, mx, pressure, contacts)
+def metrics_s(x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, acc, mx, pressure, contacts):
+    return _pair_metrics(SMOOTH, x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, acc, mx, pressure, contacts)
 
 
 @njit(cache=True)
-def metrics_ns(x, n_local, diam, po, pj, pl, xbar, beta, upd, acc, mx, pressure, contacts):
-    return _pair_metrics(NONSMOOTH, x, n_local, diam, po, pj, pl, xbar, beta, upd, acc, mx, pressure, contacts)
+def metrics_ns(x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, acc, mx, pressure, contacts):
+    return _pair_metrics(NONSMOOTH, x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, acc, mx, pressure, contacts)
 
 
 def pair_metrics(form):
     """The compiled metrics pass for a form (any dimension). Arguments: (x, n_local, diam,
-    pair_offsets, pair_j, pair_lambda, xbar, beta, update_lambda, acc (2, NBINS+1), maxima
+    pair_offsets, pair_j, pair_lambda, xbar, beta, lambda_mode, lam_scale, acc (2, NBINS+1), maxima
     (N_MET_MAX,), pressure (n_local,), contacts int32 (n_local,)); returns the number of row
     entries with lambda > 0."""
     return metrics_s if form == "S" else metrics_ns

@@ -8,28 +8,37 @@ import math
 import numpy as np
 
 from . import comm as comm_mod
-from . import metrics, neighbors
+from . import kernels, metrics, neighbors
 from .reduction import Reduction
 from .state import BlockState
 
 
-def measure(s, update_lambda=False):
+def measure(s, finalize=False):
     """One metrics pass (collective): max overlap, KKT residual, complementarity, W.
 
-    With update_lambda, lambda is first brought up to date with X by (2.10b) (the end of a
-    DAHA/AHA run). Returns the reduced figures and, per local particle, pressure
-    mu_i = sum_j lambda_ij and active contacts (arrays of n_local rows).
+    The multipliers are those of the current X: when the state holds lambda^{n-1} (DAHA/AHA
+    between iterations) the pass applies (2.10b) on the fly; it stores the result only with
+    ``finalize`` (the end of a run), so a check in the middle of a run changes nothing.
+    Returns the reduced figures and, per local particle, pressure mu_i = sum_j lambda_ij and
+    active contacts (arrays of n_local rows).
+
+    KKT residual = ||grad W + sum lambda grad phi|| / ||grad W|| over all spheres (2.4), with
+    the multipliers of (2.4) (NAV's are tau times its own, see (2.6)); pressure likewise.
     """
     st = s.state
+    if st.lambda_fresh:
+        mode = kernels.LAMBDA_STORED
+    else:
+        mode = kernels.LAMBDA_UPDATE if finalize else kernels.LAMBDA_PEEK
     red = Reduction().add_exact("met", [("kkt2", 1), ("gw2", 1)]) \
         .add_max("met", [("overlap", 1), ("complementarity", 1), ("max_lambda", 1)]) \
         .add_count("active").begin()
     pressure = np.zeros(st.n_local)
     contacts = np.zeros(st.n_local, dtype=np.int32)
     n_active = s._metrics_kernel(st.x, st.n_local, st.diam, st.pair_offsets, st.pair_j,
-                                    st.pair_lambda, s.xbar, s.beta, update_lambda,
-                                    red.acc("met"), red.maxima("met"), pressure, contacts)
-    if update_lambda:
+                                 st.pair_lambda, s.xbar, s.beta, mode, s.kkt_lambda_scale,
+                                 red.acc("met"), red.maxima("met"), pressure, contacts)
+    if mode == kernels.LAMBDA_UPDATE:
         st.lambda_fresh = True
     red.set_count("active", n_active)
     red.reduce(s.comm)
@@ -50,7 +59,7 @@ def finish(s):
     max overlap, W, KKT residual, packing density about the centre of mass, active pairs."""
     # DAHA/AHA hold lambda^{n-1}: one (2.10b) pass makes it lambda^n; NAP/NAV end every
     # outer iteration with fresh multipliers
-    fig, _, _ = measure(s, update_lambda=not s.state.lambda_fresh)
+    fig, _, _ = measure(s, finalize=True)
     r_gyr = fig.pop("radius_of_gyration")
     radius = r_gyr if r_gyr > 0 else s.d_max
     red = Reduction().add_exact("cover", [("cover", 1)]).begin()

@@ -63,6 +63,7 @@ def outer_step(s):
     st.x_prev[:st.n_local] = st.x_lin[:st.n_local]  # X^{p}, for NAV's V^{p+1}
     st.iteration += 1
     fig["relative_change"] = math.sqrt(d2 / p2) if p2 > 0 else (0.0 if d2 == 0 else math.inf)
+    fig["W"] = 0.5 * (p2 - s.n * float(xbar_p @ xbar_p))  # W^p, as DAHA's figures carry W^n
     fig["iteration"] = st.iteration
     fig["inner_iterations"] = inner
     return fig

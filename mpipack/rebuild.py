@@ -14,7 +14,7 @@ d_ij + skin and every pair with lambda > 0, summed in partner-gid order.
 import numpy as np
 
 from . import comm as comm_mod
-from . import domain, neighbors
+from . import domain, init, neighbors
 from .state import gather_rows
 from .timers import BALANCE, BORDERS, EXCHANGE, ROWS
 
@@ -77,7 +77,7 @@ def rebuild(s, rebalance=False, hist=None):
         raise TooDenseError(
             f"the configuration is too dense for memory: the pair rows of {s.n} spheres "
             f"would need more than {s._max_entries * BYTES_PER_ENTRY_PEAK / 2**30:.1f} GiB "
-            f"on a rank; spread the start (raise init.sigma, now {s.scene.init.sigma:g}), "
+            f"on a rank; spread the start (raise init.sigma, now {init.gaussian_sigma(s.scene):g}), "
             f"use init.kind = \"lattice\", or run on more nodes (limit: neighbor.max_pair_gib)")
     if missing:
         raise RuntimeError(f"internal error: {missing} pair partners with lambda > 0 are missing "

@@ -36,6 +36,7 @@ import numpy as np
 from . import comm as comm_mod
 from . import domain, exactsum, hooks as hooks_mod, init, kernels, measures, neighbors, nested
 from . import rebuild as rebuild_mod
+from .certify import Certifier
 from .reduction import Reduction
 from .state import State
 from .timers import FORWARD, HOOKS, REDUCE, STEP, PhaseTimers, format_report, process_age_seconds
@@ -76,6 +77,8 @@ class Solver:
             self.coeffs = kernels.coefficients(m.name, m.alpha, m.beta, m.gamma, m.c)
             self._kernel = kernels.multipliers_and_step(m.form, self.dim)
         self._metrics_kernel = kernels.pair_metrics(m.form)
+        # multipliers of the KKT system (2.4) per stored multiplier: NAV's solve (2.6)
+        self.kkt_lambda_scale = float(m.tau) if m.name == "nav" else 1.0
         self.d_max = scene.particles.d_max
         self.skin = float(scene.neighbor.skin) * self.d_max
         self.r_ghost = self.d_max + self.skin
@@ -178,6 +181,8 @@ class Solver:
         max_step = math.sqrt(red.max("step2"))
         fig = {
             "xbar": red.values("x") / self.n,
+            # W^n = 1/2 sum |X_i^n - Xbar^n|^2 = 1/2 (sum |X_i^n|^2 - N |Xbar^n|^2): free here
+            "W": 0.5 * (xx2 - self.n * float(xbar @ xbar)),
             "relative_change": math.sqrt(dx2 / xx2) if xx2 > 0 else (0.0 if dx2 == 0 else math.inf),
             "change2": dx2,
             "max_overlap": red.max("overlap"),
@@ -241,8 +246,11 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
     scene: a config.Scene (its ``stop`` section is the stop rule); hooks: ``hooks.Hook``s;
     source: a BlockState to start from instead of the scene's initial data; solver: continue
     an existing Solver (its physics stays; only the stop rule comes from ``scene``).
-    Stops at (4.3) when stop.eps > 0, at stop.max_iter iterations, or when a hook returns
-    hooks.STOP. Returns (solver, result dict); with ``profile`` the result has the phase table.
+    Stops when the state is certified (stop.rule "certified", see ``certify``), or at (4.3)
+    (rule "eps", when stop.eps > 0), at stop.max_iter iterations, or when a hook returns
+    hooks.STOP. Returns (solver, result dict): "converged" is true only when the final state
+    meets the certificate, "stop_reason" says what stopped the loop. With ``profile`` the
+    result has the phase table.
     """
     timers = solver.timers if solver is not None else PhaseTimers()
     t0 = time.perf_counter()
@@ -250,9 +258,11 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
         solver = Solver(scene, comm, timers)
         solver.initialise(source)
     setup_seconds = time.perf_counter() - t0
-    eps, max_iter = scene.stop.eps, scene.stop.max_iter
+    stop_rule = scene.stop
+    eps, max_iter = stop_rule.eps, stop_rule.max_iter
+    certifier = Certifier(stop_rule)
+    certified_rule = stop_rule.rule == "certified"
     ctx = hooks_mod.Context(solver)
-    converged = False
     start_iter = solver.state.iteration
     start_inner = solver.counters["inner_iterations"]
     t_loop = solver.clock0 = time.perf_counter()
@@ -270,23 +280,30 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
         for h in hooks:
             if h.due(ctx.iteration, ctx.elapsed) and h(ctx) == hooks_mod.STOP:
                 stop, ctx.stop_reason = True, h.name
+        certifier.record(ctx.iteration - 1, fig["W"])  # W^n comes with iteration n + 1
+        if ctx.iteration % stop_rule.check_every == 0 and not stop:
+            if certifier.check(solver, fig) and certified_rule:
+                stop, ctx.stop_reason = True, "certified"
         timers.lap(HOOKS)
         if stop:
             break
-        if eps > 0 and fig["relative_change"] < eps:
-            converged = True
+        if not certified_rule and eps > 0 and fig["relative_change"] < eps:
             ctx.stop_reason = "eps"
             break
     loop_seconds = time.perf_counter() - t_loop
     timers.stop()
     final = solver.finish()
+    certificate = certifier.final(solver.state.iteration, final, ctx.stop_reason == "certified")
     iters = solver.state.iteration - start_iter
     # work: particle-iterations of the kernel, inner ones for the nested methods
     inner = solver.counters["inner_iterations"] - start_inner
     work = solver.n * (inner if solver.nested else iters)
     result = {
         "iterations": solver.state.iteration,
-        "converged": converged,
+        # the packing meets every tolerance of the certificate (whatever stopped the loop)
+        "converged": all(c["ok"] for c in certificate.values()),
+        "certificate": certificate,
+        # "certified", "eps" ((4.3) fired), "max_iter", or the name of the hook that stopped it
         "stop_reason": ctx.stop_reason or ("max_iter" if solver.state.iteration >= max_iter else None),
         "relative_change": ctx.figures.get("relative_change", math.nan),
         "setup_seconds": setup_seconds,

@@ -87,6 +87,12 @@ BAD = [
     ("particles.diameter_max=0.5", "particles.diameter_max"),
     ("init.kind=grid", "init.kind"),
     ("init.sigma=0", "init.sigma"),
+    ("init.sigma=wide", "init.sigma"),
+    ("init.fraction=0", "init.fraction"),
+    ("stop.rule=fast", "stop.rule"),
+    ("stop.w_window=2", "stop.w_window"),
+    ("stop.kkt=0", "stop.kkt"),
+    ("stop.check_every=0", "stop.check_every"),
     ("stop.eps=-1", "stop.eps"),
     ("stop.max_iter=-1", "stop.max_iter"),
     ("neighbor.skin=0", "neighbor.skin"),
@@ -120,3 +126,23 @@ def test_bad_scene_source(tmp_path):
     g.write_text("[particles]\ndiameter = 1.0\nradius = 0.5\n")
     with pytest.raises(config.SceneError, match="particles.radius"):
         config.load(str(g))
+
+
+def test_starts_that_scale():
+    """init.sigma = "auto" keeps the peak density of the paper's N = 2000 start; the ball start
+    has the requested packing fraction; both are functions of (seed, gid) only."""
+    import numpy as np
+    from mpipack import init
+    s = config.load("default", ["n=8000", "init.sigma=auto"])
+    assert init.gaussian_sigma(s) == pytest.approx(2.0, rel=1e-15)  # (8000/2000)^(1/2)
+    s3 = config.load("default", ["n=16000", "dim=3", "init.sigma=auto"])
+    assert init.gaussian_sigma(s3) == pytest.approx(2.0, rel=1e-12)
+    b = config.load("default", ["n=4000", "init.kind=ball", "init.fraction=0.5"])
+    R = init.ball_radius(b)
+    assert 4000 * (math.pi / 4) == pytest.approx(0.5 * math.pi * R * R, rel=1e-12)
+    x = init.positions(b, np.arange(4000, dtype=np.int64))
+    r = np.sqrt((x ** 2).sum(axis=1))
+    assert r.max() <= R and r.max() > 0.99 * R
+    assert np.mean(r < R / 2) == pytest.approx(0.25, abs=0.03)  # uniform in area
+    part = init.positions(b, np.arange(1000, 3000, dtype=np.int64))
+    assert np.array_equal(part, x[1000:3000])
