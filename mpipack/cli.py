@@ -41,6 +41,23 @@ class _Parser(argparse.ArgumentParser):
             super().print_help(file)
 
 
+def _count(text):
+    """A positive whole number, also written as 1e6."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (v == v and v >= 1 and v < 1e15 and v == int(v)):
+        raise argparse.ArgumentTypeError(f"must be a positive whole number, got {text!r}")
+    return int(v)
+
+
+def _dimension(text):
+    if text not in ("1", "2", "3"):
+        raise argparse.ArgumentTypeError(f"must be 1, 2 or 3, got {text!r}")
+    return int(text)
+
+
 def _parser():
     p = _Parser(prog="mpipack", description="Dense sphere packings with the damped Arrow-Hurwicz algorithm, on MPI ranks.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -56,9 +73,9 @@ def _parser():
     r.add_argument("--profile", action="store_true",
                    help="print the time per phase of the loop (max and mean over ranks) at the end; also in summary.json")
     b = sub.add_parser("bench", help="throughput and memory benchmark in a packed state")
-    b.add_argument("--dim", type=int, action="append", default=None, help="dimension (repeatable; default 2 and 3)")
-    b.add_argument("--n", type=float, action="append", default=None, help="particle count (repeatable; default 1e4 1e5 1e6)")
-    b.add_argument("--iters", type=int, default=None, help="timed iterations (default: about 3 s of work)")
+    b.add_argument("--dim", type=_dimension, action="append", default=None, help="dimension (repeatable; default 2 and 3)")
+    b.add_argument("--n", type=_count, action="append", default=None, help="particle count (repeatable; default 1e4 1e5 1e6)")
+    b.add_argument("--iters", type=_count, default=None, help="timed iterations (default: about 3 s of work)")
     b.add_argument("--form", default="S", choices=["S", "NS"])
     b.add_argument("--json", default=None, help="append result rows to this JSON-lines file")
     pp = sub.add_parser("paper", help="re-run the paper's experiments; writes report.md and PNG figures")
@@ -84,6 +101,8 @@ def main(argv=None):
             print(name)
         return 0
     if args.command == "paper":
+        if args.out is not None and os.path.exists(args.out) and not os.path.isdir(args.out):
+            _fail(None, EXIT_INPUT, f"--out: {args.out} exists and is not a folder")
         from .experiments import paper
         return paper.main(args)
     if args.command == "bench":
@@ -129,6 +148,11 @@ def run_command(args):
 
 def _prepare_outputs(out, dump):
     """Create the output folder (and the dump file's folder); a one-line error or None."""
+    if dump is not None:
+        if not dump.endswith(".npz"):
+            return f"--dump expects a file name ending in .npz, got {dump!r}"
+        if os.path.isdir(dump):
+            return f"--dump: {dump} is a folder"
     for folder, what in ((out, "--out"), (os.path.dirname(os.path.abspath(dump)) if dump else None, "--dump")):
         if folder is None:
             continue
@@ -171,7 +195,8 @@ def _run(comm, scene, out, args):
         "stop_rule": scene.stop.rule, "certificate": res["certificate"], "wall_seconds": wall,
         "relative_change": res["relative_change"], "max_overlap": res["max_overlap"],
         "W": res["W"], "kkt_residual": res["kkt_residual"], "complementarity": res["complementarity"],
-        "density": res["density"], "density_radius": res["density_radius"],
+        "density": res["density"] if _density_valid(scene, res) else None,
+        "density_radius": res["density_radius"],
         "particle_iterations_per_second": res["particle_iterations_per_second"],
         "particle_iterations_per_second_per_rank": res["particle_iterations_per_second"] / comm.size,
         "loop_seconds": res["loop_seconds"], "setup_seconds": res["setup_seconds"],
@@ -198,14 +223,27 @@ def _run(comm, scene, out, args):
                   f"({res['particle_iterations_per_second']:.3g} particle-iterations/s)\n"
                   f"  {_certificate_line(res['certificate'])}\n"
                   f"  relative change {res['relative_change']:.3e}, W = {res['W']:.10g}\n"
-                  f"  packing density {res['density']:.4f} in the ball of radius {res['density_radius']:.3g} "
-                  f"(radius of gyration) about the centre of mass\n"
+                  f"  {_density_line(scene, res)}\n"
                   f"  summary: {os.path.join(out, 'summary.json')}", flush=True)
         if args.profile:
             print("mpipack: time per phase of the loop", flush=True)
             for line in solver_mod.profile_lines(res):
                 print("  " + line, flush=True)
     return _exit_code(scene, res)
+
+
+def _density_valid(scene, res):
+    """A density is a packing's only when the spheres do not overlap beyond the tolerance (the
+    covered measure counts an overlap twice) and it is at most 1."""
+    return res["max_overlap"] <= scene.stop.overlap and res["density"] <= 1.0
+
+
+def _density_line(scene, res):
+    if _density_valid(scene, res):
+        return (f"packing density {res['density']:.4f} in the ball of radius {res['density_radius']:.3g} "
+                f"(radius of gyration) about the centre of mass")
+    return (f"packing density not reported: the spheres overlap by up to {res['max_overlap']:.3g} d "
+            f"(tolerance {scene.stop.overlap:g}), so the covered measure is not a packing's")
 
 
 def _verdict(scene, res):

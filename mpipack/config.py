@@ -12,6 +12,7 @@ exit code 2 on every rank.
 import copy
 import dataclasses
 import math
+import re
 import tomllib
 from dataclasses import dataclass
 from importlib import resources
@@ -32,8 +33,8 @@ DEFAULTS = {
     "init": {"kind": "gaussian", "sigma": "auto", "fraction": 0.5, "spacing": 1.0, "jitter": 0.0},
     "method": {"name": "daha", "form": "S", "alpha": 7.8e-3, "beta": 2.8e3, "gamma": None, "c": 2.0,
                "l_inner": 10, "eps_inner": 1e-9, "tau": 0.1},
-    "stop": {"rule": "eps", "eps": 1e-5, "max_iter": 100000, "overlap": 1e-3, "kkt": 1e-2,
-             "w_rtol": 1e-4, "w_window": 0.1, "check_every": 50},
+    "stop": {"rule": "eps", "eps": 1e-5, "max_iter": 100000, "max_seconds": 0.0, "overlap": 1e-3,
+             "kkt": 1e-2, "w_rtol": 1e-4, "w_window": 0.1, "check_every": 50},
     "neighbor": {"skin": 0.3, "rebalance": 1.2, "max_pair_gib": None},
     "output": {"progress_every": 0.5, "dir": None},
 }
@@ -49,11 +50,20 @@ def builtin_names():
 
 def _read(source):
     """Parse a scene from a path or a built-in name."""
+    if not source.strip():
+        raise SceneError("empty scene name: give a TOML file or a built-in name (mpipack scenes)")
     path = Path(source)
     if path.suffix == ".toml" or path.exists():
         if not path.exists():
             raise SceneError(f"scene file not found: {source}")
-        text = path.read_text()
+        if path.is_dir():
+            raise SceneError(f"scene {source} is a folder, not a TOML file")
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError:
+            raise SceneError(f"scene {source} is not a text file (not UTF-8)") from None
+        except OSError as e:
+            raise SceneError(f"scene {source}: cannot read it: {e.strerror}") from None
         default_name = path.stem
     else:
         names = builtin_names()
@@ -134,6 +144,7 @@ class Stop:
     rule: str
     eps: float
     max_iter: int
+    max_seconds: float
     overlap: float
     kkt: float
     w_rtol: float
@@ -204,7 +215,7 @@ def _freeze(table):
 def load(source=None, overrides=(), seed=None):
     """Scene from a file or built-in name (default: the built-in 'default'), with
     ``overrides`` as 'dotted.key=value' strings and an optional seed, validated and frozen."""
-    data = _read(source or "default")
+    data = _read("default" if source is None else source)
     scene = copy.deepcopy(DEFAULTS)
     _merge(scene, data)
     for item in overrides:
@@ -251,6 +262,9 @@ def validate(scene):
     """Check types and ranges in place; raises SceneError naming the first bad key."""
     if not isinstance(scene["name"], str) or not scene["name"]:
         raise SceneError("key 'name' must be a non-empty string")
+    if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.+-]*", scene["name"]) or ".." in scene["name"]:
+        raise SceneError(f"key 'name' must be a plain name (letters, digits, _ . + -; it names the "
+                         f"output folder), got {scene['name']!r}")
     dim = _num(scene, "dim", int)
     if dim not in (1, 2, 3):
         raise SceneError(f"key 'dim' must be 1, 2 or 3, got {dim}")
@@ -290,6 +304,9 @@ def validate(scene):
         raise SceneError(f"key 'stop.rule' must be one of {', '.join(STOP_RULES)}, got {scene['stop']['rule']!r}")
     _num(scene, "stop.eps", allow_zero=True)
     _num(scene, "stop.max_iter", int, allow_zero=True)
+    if scene["stop"]["max_iter"] > 10 ** 12:
+        raise SceneError(f"key 'stop.max_iter' must be at most 1e12, got {scene['stop']['max_iter']}")
+    _num(scene, "stop.max_seconds", allow_zero=True)
     _num(scene, "stop.overlap")
     _num(scene, "stop.kkt")
     _num(scene, "stop.w_rtol")
@@ -301,10 +318,33 @@ def validate(scene):
     reb = _num(scene, "neighbor.rebalance")
     if reb < 1:
         raise SceneError(f"key 'neighbor.rebalance' must be >= 1 (max/mean particles per rank), got {reb}")
+    _check_length_scales(scene)
     _num(scene, "output.progress_every", allow_zero=True)
     if scene["output"]["dir"] is not None and not isinstance(scene["output"]["dir"], str):
         raise SceneError("key 'output.dir' must be a string")
     return scene
+
+
+# Lengths must stay where the exact sums resolve them: |X|^2 below exactsum.RANGE (~3.9e25,
+# |X| < 6e12) with room for the run to expand, and well above its resolution (2^-78).
+LENGTH_MIN, LENGTH_MAX = 1e-6, 1e9
+
+
+def _check_length_scales(scene):
+    p, init = scene["particles"], scene["init"]
+    dim, n = scene["dim"], scene["n"]
+    d_max = p["diameter_max"] if p["diameter_max"] is not None else p["diameter"]
+    lengths = {"particles.diameter": p["diameter"], "particles.diameter_max": d_max,
+               # the packed cloud's extent
+               "n and particles.diameter (the packing's size)": d_max * n ** (1.0 / dim)}
+    if init["kind"] == "gaussian" and init["sigma"] != "auto":
+        lengths["init.sigma"] = init["sigma"]
+    if init["kind"] == "lattice":
+        lengths["init.spacing"] = init["spacing"] * n ** (1.0 / dim)
+    for key, v in lengths.items():
+        if not LENGTH_MIN <= v <= LENGTH_MAX:
+            raise SceneError(f"key '{key.split(' ')[0]}': length {v:.3g} is outside [{LENGTH_MIN:g}, "
+                             f"{LENGTH_MAX:g}] ({key}); rescale the problem (results scale with d)")
 
 
 def d_max(scene):

@@ -49,6 +49,14 @@ class NumericalError(RuntimeError):
 TooDenseError = rebuild_mod.TooDenseError
 
 
+# resident bytes per particle, a conservative estimate of the arrays (X^n, X^{n-1}, X^{n+1}, at
+# the last build; gid, diameter; about 6 (2D) / 12 (3D) pair entries with growth room) and of
+# the set-up's temporaries; measured at a packed state: 160 (2D) and 262 (3D)
+BYTES_PER_PARTICLE = {1: 250, 2: 400, 3: 650}
+# a run diverges when its radius of gyration exceeds this multiple of its natural size
+DIVERGENCE_FACTOR = 1e4
+
+
 def _available_memory_bytes():
     try:
         with open("/proc/meminfo") as f:
@@ -103,6 +111,15 @@ class Solver:
         gib = scene.neighbor.max_pair_gib
         budget = gib * 2 ** 30 if gib is not None else _available_memory_bytes() / comm.ranks_per_node
         self._max_entries = int(budget / rebuild_mod.BYTES_PER_ENTRY_PEAK)
+        # refuse, before allocating anything, a system whose particle arrays alone cannot fit
+        # (collective: nodes may differ in free memory)
+        need = math.ceil(self.n / comm.size) * BYTES_PER_PARTICLE[self.dim]
+        if comm.allreduce(np.array([1 if need > budget else 0]), op="max")[0]:
+            raise TooDenseError(
+                f"n = {self.n} spheres need about {need / 2**30:.3g} GiB per rank for the particle "
+                f"arrays alone, more than the {budget / 2**30:.3g} GiB available per rank; use more "
+                f"ranks or nodes, or fewer spheres (limit: neighbor.max_pair_gib)")
+        self.r_diverge = math.inf  # radius of gyration beyond which the run diverges (initialise)
 
     # ---- set-up ----------------------------------------------------------------------------
     def initialise(self, source=None):
@@ -132,7 +149,10 @@ class Solver:
         st.set_particles(local, ghost)
         st.lambda_fresh = lam_fresh
         self.rebuild(rebalance=True, hist=hist)
-        self.xbar = self._centre_of_mass()
+        self.xbar, w0 = self._centre_of_mass()
+        # natural size: the start's radius of gyration, or a packing's, whichever is larger
+        r_start = math.sqrt(2.0 * max(w0, 0.0) / self.n)
+        self.r_diverge = DIVERGENCE_FACTOR * max(r_start, self.d_max * self.n ** (1.0 / self.dim))
         # compile (or load from the cache) the step kernel now, so the loop's timing excludes it
         scratch = Reduction().add_exact("step", [("x", self.dim), ("dx2", 1), ("xx2", 1)]) \
             .add_max("step", [("step2", 1), ("overlap", 1)]).begin()
@@ -141,10 +161,13 @@ class Solver:
                      scratch.acc("step"), scratch.maxima("step"))
 
     def _centre_of_mass(self):
+        """Xbar and W = 1/2 sum |X_i - Xbar|^2 of the current positions (collective)."""
         st = self.state
         red = Reduction().add_exact("sums", [("x", self.dim), ("xx", 1)]).begin()
         kernels.local_sums(st.x, st.n_local, red.acc("sums"))
-        return red.reduce(self.comm).values("x") / self.n
+        red.reduce(self.comm)
+        xbar = red.values("x") / self.n
+        return xbar, 0.5 * (red.value("xx") - self.n * float(xbar @ xbar))
 
     # ---- one iteration ----------------------------------------------------------------------
     def step(self):
@@ -191,6 +214,11 @@ class Solver:
             "max_local": int(red.max("max_local")),
             "wall": red.max("wall"),
         }
+        r_gyr = math.sqrt(2.0 * max(fig["W"], 0.0) / self.n)
+        if r_gyr > self.r_diverge:
+            raise NumericalError(
+                f"the cloud diverges: radius of gyration {r_gyr:.3g} at iteration {st.iteration + 1}, "
+                f"{DIVERGENCE_FACTOR:g} times its natural size; lower beta, alpha or gamma, or raise c")
         fig["imbalance"] = fig["max_local"] * self.comm.size / self.n
         self.counters["max_imbalance"] = max(self.counters["max_imbalance"], fig["imbalance"])
         t.lap(REDUCE)
@@ -281,6 +309,8 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
             if h.due(ctx.iteration, ctx.elapsed) and h(ctx) == hooks_mod.STOP:
                 stop, ctx.stop_reason = True, h.name
         certifier.record(ctx.iteration - 1, fig["W"])  # W^n comes with iteration n + 1
+        if stop_rule.max_seconds > 0 and fig["wall"] >= stop_rule.max_seconds and not stop:
+            stop, ctx.stop_reason = True, "max_seconds"  # the wall clock is reduced: collective
         if ctx.iteration % stop_rule.check_every == 0 and not stop:
             if certifier.check(solver, fig) and certified_rule:
                 stop, ctx.stop_reason = True, "certified"
