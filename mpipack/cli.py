@@ -180,6 +180,9 @@ def _run(comm, scene, out, args):
               f"gamma={m.gamma:g} c={m.c:g} eps={scene.stop.eps:g}", flush=True)
         print(f"{'iteration':>10} {'rel.change':>11} {'max overlap':>11} {'contacts':>9} {'it/s':>9}", flush=True)
     hooks = [hooks_mod.progress_printer(scene, comm, every)] if show else []
+    if scene.output.metrics_every > 0:
+        hooks.append(hooks_mod.metrics_recorder(scene, comm, os.path.join(out, "metrics.csv"),
+                                                scene.output.metrics_every))
     t0 = time.perf_counter()
     try:
         solver, res = solver_mod.run(scene, comm, hooks=hooks, profile=args.profile)

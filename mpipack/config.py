@@ -36,7 +36,7 @@ DEFAULTS = {
     "stop": {"rule": "eps", "eps": 1e-5, "max_iter": 100000, "max_seconds": 0.0, "overlap": 1e-3,
              "kkt": 1e-2, "w_rtol": 1e-4, "w_window": 0.1, "check_every": 50},
     "neighbor": {"skin": 0.3, "rebalance": 1.2, "max_pair_gib": None},
-    "output": {"progress_every": 0.5, "dir": None},
+    "output": {"progress_every": 0.5, "dir": None, "metrics_every": 0, "w_optimum": None},
 }
 
 
@@ -163,6 +163,8 @@ class Neighbor:
 class Output:
     progress_every: float
     dir: Optional[str]
+    metrics_every: int
+    w_optimum: Optional[float]
 
 
 _SECTIONS = {"particles": Particles, "init": Init, "method": Method, "stop": Stop,
@@ -320,6 +322,8 @@ def validate(scene):
         raise SceneError(f"key 'neighbor.rebalance' must be >= 1 (max/mean particles per rank), got {reb}")
     _check_length_scales(scene)
     _num(scene, "output.progress_every", allow_zero=True)
+    _num(scene, "output.metrics_every", int, allow_zero=True)
+    _num(scene, "output.w_optimum", positive=False, optional=True)
     if scene["output"]["dir"] is not None and not isinstance(scene["output"]["dir"], str):
         raise SceneError("key 'output.dir' must be a string")
     return scene

@@ -76,3 +76,39 @@ def progress_printer(scene, comm, every, stream=None):
         return None
 
     return Hook(progress, wall_dt=every, name="progress")
+
+
+METRIC_COLUMNS = ("iteration", "wall_seconds", "relative_change", "max_overlap", "A", "W",
+                  "W_minus_optimum", "kkt_residual", "complementarity", "active_pairs")
+
+
+def metrics_recorder(scene, comm, path, every):
+    """Every ``every`` iterations and at the end: one metrics pass (``measures.measure``, about
+    the cost of an iteration; collective) and a row of ``METRIC_COLUMNS`` appended to the CSV
+    file ``path`` by rank 0. The error measures: relative change (4.3), max overlap relative
+    to d_kl, the paper's mean overlap proportion A (Definition 4.1), W and W minus
+    output.w_optimum when the scene gives one, the KKT residual, complementarity
+    max lambda |phi|, active pairs. Returns a Hook."""
+    from . import measures
+    optimum = scene.output.w_optimum
+    state = {"last": None}
+    if comm.rank == 0:
+        with open(path, "w") as f:
+            f.write(",".join(METRIC_COLUMNS) + "\n")
+
+    def record(ctx):
+        if state["last"] == ctx.iteration:  # the end, right after a scheduled row
+            return None
+        state["last"] = ctx.iteration
+        m, _, _ = measures.measure(ctx.solver)
+        if comm.rank != 0:
+            return None
+        row = (ctx.iteration, ctx.elapsed, ctx.figures.get("relative_change", float("nan")),
+               m["max_overlap"], m["overlap_A"], m["W"],
+               m["W"] - optimum if optimum is not None else float("nan"),
+               m["kkt_residual"], m["complementarity"], m["active_pairs"])
+        with open(path, "a") as f:
+            f.write(",".join(repr(v) if isinstance(v, float) else str(v) for v in row) + "\n")
+        return None
+
+    return Hook(record, every=every, at_end=True, name="metrics")

@@ -32,7 +32,7 @@ result independent of how particles are distributed over ranks.
 import numpy as np
 from numba import njit
 
-from . import exactsum
+from . import exactsum, metrics
 
 SMOOTH = 0
 NONSMOOTH = 1
@@ -369,7 +369,9 @@ def nested_step(method, form):
 # them (a check in the middle of a run, which must not change the trajectory).
 
 LAMBDA_STORED, LAMBDA_UPDATE, LAMBDA_PEEK = 0, 1, 2
-MET_KKT2, MET_GW2 = 0, 1
+# exact rows: KKT2, GW2, the overlap measure sum_{i<j} |B_i ∩ B_j| (each pair from both ends,
+# halved by the caller) and the spheres' measure sum_i |B_i|, for the paper's A (Definition 4.1)
+MET_KKT2, MET_GW2, MET_OVERLAP_MEASURE, MET_SPHERE_MEASURE = 0, 1, 2, 3
 MET_OVERLAP, MET_COMPL, MET_LAMBDA = 0, 1, 2
 N_MET_MAX = 3
 
@@ -394,6 +396,7 @@ def _pair_metrics(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, xba
         mu = 0.0
         nc = 0
         di = diam[i]
+        lens = 0.0
         for e in range(pair_offsets[i], pair_offsets[i + 1]):
             j = pair_j[e]
             r2 = 0.0
@@ -421,6 +424,7 @@ def _pair_metrics(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, xba
                         min_ratio2 = r2 / (dij * dij)
                 elif phi > max_overlap * dij:
                     max_overlap = phi / dij
+                lens += metrics.intersection(dim, np.sqrt(r2), 0.5 * diam[j], 0.5 * di)
             if lam > 0.0:
                 n_active += 1
                 mu += lam
@@ -441,6 +445,8 @@ def _pair_metrics(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, xba
             kkt2 += g[k] * g[k]
         exactsum.add(fbuf, acc, MET_KKT2, kkt2)
         exactsum.add(fbuf, acc, MET_GW2, gw2)
+        exactsum.add(fbuf, acc, MET_OVERLAP_MEASURE, lens)
+        exactsum.add(fbuf, acc, MET_SPHERE_MEASURE, metrics.ball_volume(dim, 0.5 * di))
         pressure[i] = mu
         contacts[i] = nc
     exactsum.flush(fbuf, acc)
@@ -464,7 +470,7 @@ def metrics_ns(x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, acc, mx, pr
 
 def pair_metrics(form):
     """The compiled metrics pass for a form (any dimension). Arguments: (x, n_local, diam,
-    pair_offsets, pair_j, pair_lambda, xbar, beta, lambda_mode, lam_scale, acc (2, NBINS+1), maxima
+    pair_offsets, pair_j, pair_lambda, xbar, beta, lambda_mode, lam_scale, acc (4, NBINS+1), maxima
     (N_MET_MAX,), pressure (n_local,), contacts int32 (n_local,)); returns the number of row
     entries with lambda > 0."""
     return metrics_s if form == "S" else metrics_ns

@@ -13,14 +13,15 @@ from .reduction import Reduction
 from .state import BlockState
 
 
-def measure(s, finalize=False):
+def measure(s, finalize=False, empty=False):
     """One metrics pass (collective): max overlap, KKT residual, complementarity, W.
 
     The multipliers are those of the current X: when the state holds lambda^{n-1} (DAHA/AHA
     between iterations) the pass applies (2.10b) on the fly; it stores the result only with
     ``finalize`` (the end of a run), so a check in the middle of a run changes nothing.
     Returns the reduced figures and, per local particle, pressure mu_i = sum_j lambda_ij and
-    active contacts (arrays of n_local rows).
+    active contacts (arrays of n_local rows). ``empty`` runs the pass over no particle (it
+    compiles the kernel, and still reduces: collective).
 
     KKT residual = ||grad W + sum lambda grad phi|| / ||grad W|| over all spheres (2.4), with
     the multipliers of (2.4) (NAV's are tau times its own, see (2.6)); pressure likewise.
@@ -30,12 +31,12 @@ def measure(s, finalize=False):
         mode = kernels.LAMBDA_STORED
     else:
         mode = kernels.LAMBDA_UPDATE if finalize else kernels.LAMBDA_PEEK
-    red = Reduction().add_exact("met", [("kkt2", 1), ("gw2", 1)]) \
+    red = Reduction().add_exact("met", [("kkt2", 1), ("gw2", 1), ("lens", 1), ("spheres", 1)]) \
         .add_max("met", [("overlap", 1), ("complementarity", 1), ("max_lambda", 1)]) \
         .add_count("active").begin()
     pressure = np.zeros(st.n_local)
     contacts = np.zeros(st.n_local, dtype=np.int32)
-    n_active = s._metrics_kernel(st.x, st.n_local, st.diam, st.pair_offsets, st.pair_j,
+    n_active = s._metrics_kernel(st.x, 0 if empty else st.n_local, st.diam, st.pair_offsets, st.pair_j,
                                  st.pair_lambda, s.xbar, s.beta, mode, s.kkt_lambda_scale,
                                  red.acc("met"), red.maxima("met"), pressure, contacts)
     if mode == kernels.LAMBDA_UPDATE:
@@ -48,6 +49,9 @@ def measure(s, finalize=False):
         "W": 0.5 * gw2,
         "kkt_residual": math.sqrt(kkt2 / gw2) if gw2 > 0 else (0.0 if kkt2 == 0 else math.inf),
         "complementarity": red.max("complementarity"),
+        # the paper's A (Definition 4.1): sum_{i<j} |B_i ∩ B_j| / (N sum_i |B_i|)
+        "overlap_A": (0.5 * red.value("lens") / (s.n * red.value("spheres"))
+                      if red.value("spheres") > 0 else math.nan),
         "max_lambda": red.max("max_lambda"),
         "active_pairs": red.count("active") // 2,
         "radius_of_gyration": math.sqrt(gw2 / s.n),

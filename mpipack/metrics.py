@@ -13,7 +13,17 @@ from . import exactsum
 
 
 @njit(cache=True, inline="always")
-def _intersection(dim, s, a, R):
+def ball_volume(dim, a):
+    """Measure of a ball of radius a: length (1D), area (2D), volume (3D)."""
+    if dim == 1:
+        return 2.0 * a
+    if dim == 2:
+        return math.pi * a * a
+    return 4.0 / 3.0 * math.pi * a * a * a
+
+
+@njit(cache=True, inline="always")
+def intersection(dim, s, a, R):
     """Measure of B(p, a) ∩ B(0, R) with |p| = s: length (1D), area (2D), volume (3D)."""
     if s >= a + R:
         return 0.0
@@ -50,7 +60,7 @@ def covered_measure(x, diam, n_local, centre, radii, acc):
             s2 += (x[i, k] - centre[k]) ** 2
         s = math.sqrt(s2)
         for q in range(radii.shape[0]):
-            exactsum.add(fbuf, acc, q, _intersection(dim, s, 0.5 * diam[i], radii[q]))
+            exactsum.add(fbuf, acc, q, intersection(dim, s, 0.5 * diam[i], radii[q]))
     exactsum.flush(fbuf, acc)
 
 

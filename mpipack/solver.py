@@ -159,6 +159,8 @@ class Solver:
         self._kernel(st.x, st.x_prev, st.x_new, 0, st.diam, st.pair_offsets, st.pair_j,
                      st.pair_lambda, self.xbar, *self.coeffs, self.beta, False,
                      scratch.acc("step"), scratch.maxima("step"))
+        # and the metrics pass, which every run needs at its end (and hooks may ask for sooner)
+        measures.measure(self, empty=True)
 
     def _centre_of_mass(self):
         """Xbar and W = 1/2 sum |X_i - Xbar|^2 of the current positions (collective)."""
