@@ -64,6 +64,13 @@ class Certifier:
             return math.inf
         return abs(w - old) / w
 
+    def save(self):
+        """The state a restart needs to take the same decisions (JSON-able)."""
+        return {"w_history": [[int(i), float(w)] for i, w in self.w_history]}
+
+    def restore(self, saved):
+        self.w_history = collections.deque((int(i), float(w)) for i, w in saved["w_history"])
+
     def criteria(self, overlap, kkt, w_change):
         """{name: {"value", "tol", "ok"}} for the three criteria."""
         st = self.stop

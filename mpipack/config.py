@@ -36,7 +36,8 @@ DEFAULTS = {
     "stop": {"rule": "eps", "eps": 1e-5, "max_iter": 100000, "max_seconds": 0.0, "overlap": 1e-3,
              "kkt": 1e-2, "w_rtol": 1e-4, "w_window": 0.1, "check_every": 50},
     "neighbor": {"skin": 0.3, "rebalance": 1.2, "max_pair_gib": None},
-    "output": {"progress_every": 0.5, "dir": None, "metrics_every": 0, "w_optimum": None},
+    "output": {"progress_every": 0.5, "dir": None, "metrics_every": 0, "w_optimum": None,
+               "snapshots": True, "snapshot_every": 0, "checkpoint_every": 0},
 }
 
 
@@ -165,6 +166,9 @@ class Output:
     dir: Optional[str]
     metrics_every: int
     w_optimum: Optional[float]
+    snapshots: bool
+    snapshot_every: int
+    checkpoint_every: int
 
 
 _SECTIONS = {"particles": Particles, "init": Init, "method": Method, "stop": Stop,
@@ -214,12 +218,15 @@ def _freeze(table):
     return Scene(**kw)
 
 
-def load(source=None, overrides=(), seed=None):
+def load(source=None, overrides=(), seed=None, base=None):
     """Scene from a file or built-in name (default: the built-in 'default'), with
-    ``overrides`` as 'dotted.key=value' strings and an optional seed, validated and frozen."""
-    data = _read("default" if source is None else source)
+    ``overrides`` as 'dotted.key=value' strings and an optional seed, validated and frozen.
+    With ``base`` (a scene table, e.g. a checkpoint's) and no source, the overrides apply to it."""
     scene = copy.deepcopy(DEFAULTS)
-    _merge(scene, data)
+    if base is not None and source is None:
+        _merge(scene, base)
+    else:
+        _merge(scene, _read("default" if source is None else source))
     for item in overrides:
         if "=" not in item:
             raise SceneError(f"--set expects key=value, got {item!r}")
@@ -323,6 +330,10 @@ def validate(scene):
     _check_length_scales(scene)
     _num(scene, "output.progress_every", allow_zero=True)
     _num(scene, "output.metrics_every", int, allow_zero=True)
+    _num(scene, "output.snapshot_every", int, allow_zero=True)
+    _num(scene, "output.checkpoint_every", int, allow_zero=True)
+    if not isinstance(scene["output"]["snapshots"], bool):
+        raise SceneError(f"key 'output.snapshots' must be true or false, got {scene['output']['snapshots']!r}")
     _num(scene, "output.w_optimum", positive=False, optional=True)
     if scene["output"]["dir"] is not None and not isinstance(scene["output"]["dir"], str):
         raise SceneError("key 'output.dir' must be a string")
@@ -349,6 +360,27 @@ def _check_length_scales(scene):
         if not LENGTH_MIN <= v <= LENGTH_MAX:
             raise SceneError(f"key '{key.split(' ')[0]}': length {v:.3g} is outside [{LENGTH_MIN:g}, "
                              f"{LENGTH_MAX:g}] ({key}); rescale the problem (results scale with d)")
+
+
+# what a restart may change: how the run stops, what it writes, how it splits the work; never
+# what it computes
+RESTART_MAY_CHANGE = ("name", "stop", "output", "neighbor")
+
+
+def physics_changes(old, new):
+    """Dotted keys whose values differ between two scene tables, outside RESTART_MAY_CHANGE,
+    as 'key (old -> new)' strings."""
+    out = []
+    for key in sorted(set(old) | set(new)):
+        if key in RESTART_MAY_CHANGE:
+            continue
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += [f"{key}.{k} ({a.get(k)!r} -> {b.get(k)!r})" for k in sorted(set(a) | set(b))
+                    if a.get(k) != b.get(k)]
+        elif a != b:
+            out.append(f"{key} ({a!r} -> {b!r})")
+    return out
 
 
 def d_max(scene):

@@ -18,6 +18,8 @@ on every rank (reduced figures, the iteration count), or the ranks would part wa
 elapsed (loop wall seconds, the same on every rank), result (at_end only), and ``stop_reason``.
 """
 
+import os
+
 STOP = "stop"
 
 
@@ -82,19 +84,25 @@ METRIC_COLUMNS = ("iteration", "wall_seconds", "relative_change", "max_overlap",
                   "W_minus_optimum", "kkt_residual", "complementarity", "active_pairs")
 
 
-def metrics_recorder(scene, comm, path, every):
+def metrics_recorder(scene, comm, path, every, resume_after=None):
     """Every ``every`` iterations and at the end: one metrics pass (``measures.measure``, about
     the cost of an iteration; collective) and a row of ``METRIC_COLUMNS`` appended to the CSV
     file ``path`` by rank 0. The error measures: relative change (4.3), max overlap relative
     to d_kl, the paper's mean overlap proportion A (Definition 4.1), W and W minus
     output.w_optimum when the scene gives one, the KKT residual, complementarity
-    max lambda |phi|, active pairs. Returns a Hook."""
+    max lambda |phi|, active pairs. With ``resume_after`` (a restart from that iteration) the
+    file keeps its rows up to that iteration and continues. Returns a Hook."""
     from . import measures
     optimum = scene.output.w_optimum
     state = {"last": None}
     if comm.rank == 0:
+        kept = []
+        if resume_after is not None and os.path.exists(path):
+            with open(path) as f:
+                kept = [line for line in f.readlines()[1:] if int(line.split(",", 1)[0]) <= resume_after]
         with open(path, "w") as f:
             f.write(",".join(METRIC_COLUMNS) + "\n")
+            f.writelines(kept)
 
     def record(ctx):
         if state["last"] == ctx.iteration:  # the end, right after a scheduled row

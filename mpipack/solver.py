@@ -43,7 +43,23 @@ from .timers import FORWARD, HOOKS, REDUCE, STEP, PhaseTimers, format_report, pr
 
 
 class NumericalError(RuntimeError):
-    """NaN, Inf or divergence in the state."""
+    """NaN, Inf or divergence in the state. ``solver`` (set by ``run``) holds the last good
+    state: positions of the last finite iteration and their multipliers."""
+    solver = None
+
+
+# set by a signal handler (``request_stop``), read into every reduction
+_STOP_REQUEST = [0]
+
+
+def request_stop(signum=1):
+    """Ask the loop to stop (and the caller to checkpoint) at the end of the current iteration
+    on every rank. Safe in a signal handler."""
+    _STOP_REQUEST[0] = max(1, int(signum))
+
+
+def stop_requested():
+    return _STOP_REQUEST[0]
 
 
 TooDenseError = rebuild_mod.TooDenseError
@@ -98,6 +114,7 @@ class Solver:
                          "inner_iterations": 0}
         self.timers = timers or PhaseTimers()
         self.clock0 = time.perf_counter()  # the loop's wall clock origin (set by run)
+        self.run_state = dict  # the loop's own state for a checkpoint (set by run)
         # the per-iteration reduction: the step kernel's block, the load, the loop's clock
         self.red = Reduction()
         self.red.add_exact("step", [("x", self.dim), ("dx2", 1), ("xx2", 1)])
@@ -105,6 +122,8 @@ class Solver:
         self.red.add_count("active")
         self.red.add_max("load", [("max_local", 1)], fill=lambda: self.state.n_local)
         self.red.add_max("wall", [("wall", 1)], fill=lambda: time.perf_counter() - self.clock0)
+        # a stop asked for by a signal on any rank (``request_stop``): all ranks see it together
+        self.red.add_max("stop_request", [("stop_request", 1)], fill=lambda: _STOP_REQUEST[0])
         self._disp_bound = 0.0  # upper bound of the displacement since the rows were built
         # pair-row budget of this rank: neighbor.max_pair_gib, or its share of the node's
         # available memory (under a batch system's memory limit, set the key)
@@ -194,7 +213,7 @@ class Solver:
         n_active = self._kernel(st.x, x_other, st.x_new, st.n_local, st.diam, st.pair_offsets,
                                 st.pair_j, st.pair_lambda, xbar, *self.coeffs, self.beta,
                                 not st.lambda_fresh, red.acc("step"), red.maxima("step"))
-        st.lambda_fresh = False
+        st.lambda_fresh = True  # lambda^n, of X^n: the state stays consistent if we stop here
         t.lap(STEP)
         red.set_count("active", n_active)
         red.reduce(self.comm)
@@ -223,8 +242,10 @@ class Solver:
                 f"{DIVERGENCE_FACTOR:g} times its natural size; lower beta, alpha or gamma, or raise c")
         fig["imbalance"] = fig["max_local"] * self.comm.size / self.n
         self.counters["max_imbalance"] = max(self.counters["max_imbalance"], fig["imbalance"])
+        fig["stop_request"] = red.max("stop_request") > 0
         t.lap(REDUCE)
         st.rotate()
+        st.lambda_fresh = False  # X^{n+1} now; lambda^n is the previous one
         self._refresh_ghosts(max_step)
         return fig
 
@@ -291,6 +312,9 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
     stop_rule = scene.stop
     eps, max_iter = stop_rule.eps, stop_rule.max_iter
     certifier = Certifier(stop_rule)
+    if source is not None and "certifier" in source.extra:
+        certifier.restore(source.extra["certifier"])  # a restart: the same stop decisions
+    solver.run_state = lambda: {"certifier": certifier.save()}
     certified_rule = stop_rule.rule == "certified"
     ctx = hooks_mod.Context(solver)
     start_iter = solver.state.iteration
@@ -302,7 +326,11 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
             h(ctx)
     first_iteration = math.nan
     while solver.state.iteration < max_iter:
-        fig = solver.step()
+        try:
+            fig = solver.step()
+        except NumericalError as e:
+            e.solver = solver
+            raise
         if first_iteration != first_iteration:  # NaN until the first iteration is done
             first_iteration = process_age_seconds()
         ctx.iteration, ctx.figures, ctx.elapsed = fig["iteration"], fig, fig["wall"]
@@ -311,6 +339,8 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
             if h.due(ctx.iteration, ctx.elapsed) and h(ctx) == hooks_mod.STOP:
                 stop, ctx.stop_reason = True, h.name
         certifier.record(ctx.iteration - 1, fig["W"])  # W^n comes with iteration n + 1
+        if fig.get("stop_request") and not stop:
+            stop, ctx.stop_reason = True, "signal"
         if stop_rule.max_seconds > 0 and fig["wall"] >= stop_rule.max_seconds and not stop:
             stop, ctx.stop_reason = True, "max_seconds"  # the wall clock is reduced: collective
         if ctx.iteration % stop_rule.check_every == 0 and not stop:

@@ -38,8 +38,11 @@ def probe(tmp_path, *sets):
 
 
 def test_plain_run_imports_no_output_libraries(tmp_path):
-    heavy, _ = probe(tmp_path, "n=50", "stop.max_iter=20")
+    heavy, _ = probe(tmp_path, "n=50", "stop.max_iter=20", "output.snapshots=false")
     assert heavy == [], f"a run without file output imported {heavy}"
+    # with its default HDF5 snapshot: h5py, but still no plotting or VTK library
+    heavy, _ = probe(tmp_path, "n=50", "stop.max_iter=20")
+    assert heavy == ["h5py"], heavy
 
 
 @pytest.mark.parametrize("sets,want,unwanted", [

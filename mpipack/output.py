@@ -1,0 +1,140 @@
+"""What a run leaves in its output folder, as hooks on the loop: snapshots (parallel HDF5 +
+XDMF, ``io.snapshots``), checkpoints (``io.checkpoint``), and the state a checkpoint holds.
+The file formats live in ``mpipack.io``; this module decides what goes in them. h5py is
+imported only when a snapshot or checkpoint is actually written.
+
+Run folder (``--out``, default mpipack-out/<scene name>):
+
+    summary.json     what ran, how it ended (every exit), the certificate, figures, timings
+    metrics.csv      error measures every output.metrics_every iterations (when asked)
+    snapshots.h5     output.snapshot_every iterations and the final state (io/snapshots.py)
+    snapshots.xmf    the same series for ParaView (File > Open, or pvpython OpenDataFile)
+    checkpoint.h5    the last checkpoint: everything to continue bit for bit (--restart)
+    vtk/             after ``mpipack vtk RUN_DIR``: one .vtu per snapshot and snapshots.pvd
+"""
+
+import json
+import os
+import time
+
+from . import __version__, measures
+from .hooks import Hook
+
+SNAPSHOT_FILE = "snapshots.h5"
+CHECKPOINT_FILE = "checkpoint.h5"
+
+
+def file_attrs(scene, comm):
+    """Attributes that make a file describe its own run."""
+    return {"scene": scene.as_dict(), "parameters": scene.as_dict()["method"], "ranks": comm.size,
+            "version": __version__}
+
+
+def snapshot_fields(solver):
+    """Per-sphere fields of a snapshot, local rows (collective: a metrics pass for the
+    pressure mu_i = sum_j lambda_ij and the active contacts). Returns (gid, fields, figures)."""
+    fig, pressure, contacts = measures.measure(solver)
+    st = solver.state
+    n = st.n_local
+    return st.gid[:n], {"position": st.x[:n], "diameter": st.diam[:n], "pressure": pressure,
+                        "contacts": contacts}, fig
+
+
+class Snapshots:
+    """Snapshots every ``every`` iterations (0: only the final state) and at the end."""
+
+    def __init__(self, scene, comm, out_dir, every, truncate_after=None):
+        self.scene, self.comm, self.every = scene, comm, every
+        self.path = os.path.join(out_dir, SNAPSHOT_FILE)
+        self.truncate_after = truncate_after
+        self.writer = None
+        self.last_iteration = None
+        self.seconds = 0.0
+
+    def hooks(self):
+        return [Hook(self._due, every=self.every if self.every > 0 else None, at_end=True,
+                     name="snapshot")]
+
+    def _due(self, ctx):
+        self.write(ctx.solver, ctx.iteration, ctx.elapsed, ctx.figures)
+
+    def write(self, solver, iteration, elapsed, figures):
+        if self.last_iteration == iteration:
+            return
+        from .io.snapshots import SnapshotWriter
+        t0 = time.perf_counter()
+        if self.writer is None:
+            self.writer = SnapshotWriter(self.comm, self.path, self.scene.n, self.scene.dim,
+                                         file_attrs(self.scene, self.comm),
+                                         truncate_after=self.truncate_after)
+        gid, fields, fig = snapshot_fields(solver)
+        self.writer.write(gid, fields, {
+            "iteration": iteration, "wall_seconds": elapsed,
+            "relative_change": figures.get("relative_change", float("nan")),
+            "max_overlap": fig["max_overlap"], "W": fig["W"], "kkt_residual": fig["kkt_residual"]})
+        self.last_iteration = iteration
+        self.seconds += time.perf_counter() - t0
+
+    def close(self):
+        if self.writer is not None:
+            self.writer.close()
+
+
+class Checkpoints:
+    """Checkpoints every ``every`` iterations (0: none on a schedule), and on request (signal,
+    wall-time limit, numerical trouble). Each write replaces checkpoint.h5 atomically."""
+
+    def __init__(self, scene, comm, out_dir, every):
+        self.scene, self.comm, self.every = scene, comm, every
+        self.path = os.path.join(out_dir, CHECKPOINT_FILE)
+        self.last_iteration = None
+        self.last_seconds = None  # wall seconds of the last write (for the wall-time margin)
+
+    def hooks(self):
+        if self.every <= 0:
+            return []
+        return [Hook(lambda ctx: self.write(ctx.solver), every=self.every, name="checkpoint")]
+
+    def write(self, solver):
+        """Collective. Returns the seconds the write took."""
+        from .io.checkpoint import write_checkpoint
+        if self.last_iteration == solver.state.iteration:
+            return 0.0
+        b = solver.export_state()
+        block = {"gid_lo": b.gid_lo, "x": b.x, "x_prev": b.x_prev, "diam": b.diam,
+                 "hist_count": b.hist_count, "hist_gid": b.hist_gid, "hist_lambda": b.hist_lambda}
+        if b.x_lin is not None:
+            block["x_lin"] = b.x_lin
+        scalars = {"iteration": b.iteration, "lambda_fresh": b.lambda_fresh,
+                   "counters": b.counters, "extra": {**b.extra, **solver.run_state()}}
+        seconds = write_checkpoint(self.comm, self.path, self.scene.n, self.scene.dim, block,
+                                   scalars, file_attrs(self.scene, self.comm))
+        self.last_iteration = solver.state.iteration
+        self.last_seconds = seconds
+        return seconds
+
+
+def read_state(comm, path):
+    """(BlockState of this rank, scene table, file attributes) from a checkpoint file or a run
+    folder holding checkpoint.h5. Raises io.checkpoint.CheckpointError (one line)."""
+    from .io.checkpoint import CheckpointError, read_checkpoint
+    from .state import BlockState
+    if os.path.isdir(path):
+        path = os.path.join(path, CHECKPOINT_FILE)
+    block, scalars, attrs = read_checkpoint(comm, path)
+    scene = attrs.get("scene")
+    if isinstance(scene, str):
+        try:
+            scene = json.loads(scene)
+        except ValueError:
+            scene = None
+    if not isinstance(scene, dict):
+        raise CheckpointError(f"checkpoint {path}: no scene recorded in it")
+    state = BlockState(
+        n_global=int(attrs["n"]), dim=int(attrs["dim"]), gid_lo=int(block["gid_lo"]),
+        x=block["x"], x_prev=block["x_prev"], diam=block["diam"],
+        hist_count=block["hist_count"], hist_gid=block["hist_gid"],
+        hist_lambda=block["hist_lambda"], x_lin=block.get("x_lin"),
+        iteration=int(scalars["iteration"]), lambda_fresh=bool(scalars["lambda_fresh"]),
+        counters=dict(scalars.get("counters", {})), extra=dict(scalars.get("extra", {})))
+    return state, scene, attrs

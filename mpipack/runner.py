@@ -1,0 +1,383 @@
+"""``mpipack run``: one run of a scene and everything around the loop: the scene (or a restart),
+the output folder, the hooks (progress, metrics, snapshots, checkpoints, wall-time limit),
+signals, and a summary.json on every exit. ``cli`` parses; ``solver.run`` iterates.
+
+Exit codes (the same on every rank):
+
+    0  converged (certified), or under the paper's rule (stop.rule = "eps") (4.3) fired or the
+       requested iterations ran (stop.eps = 0)
+    1  internal error (a bug: please report it with the traceback)
+    2  bad input (scene, option, checkpoint): one line naming the problem
+    3  numerical trouble: NaN, Inf or divergence; the last good state is checkpointed
+    4  not converged within stop.max_iter or stop.max_seconds
+    5  stopped with a checkpoint: SIGTERM, SIGUSR1, SIGINT or --walltime; continue with
+       ``mpipack run --restart RUN_DIR``
+
+Nothing is lost: output paths are checked before any work; summary.json is written on every
+exit (or, if the folder has become unwritable, to a fallback file whose path is printed); a
+signal or a numerical failure leaves a checkpoint of the last good state.
+"""
+
+import datetime
+import json
+import math
+import os
+import signal
+import sys
+import time
+
+from . import __version__
+
+EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_NUMERICAL, EXIT_NOT_CONVERGED, EXIT_CHECKPOINTED = 0, 1, 2, 3, 4, 5
+EXIT_MEANING = {0: "converged", 1: "internal error", 2: "bad input", 3: "numerical trouble",
+                4: "not converged", 5: "stopped with a checkpoint"}
+
+
+class InputError(Exception):
+    """Bad input found while setting a run up: one line."""
+
+
+def parse_walltime(text):
+    """Seconds from 'HH:MM:SS', 'MM:SS' or seconds; InputError otherwise."""
+    try:
+        parts = [float(p) for p in text.split(":")]
+    except ValueError:
+        parts = []
+    if not 1 <= len(parts) <= 3 or any(not math.isfinite(p) or p < 0 for p in parts):
+        raise InputError(f"--walltime expects HH:MM:SS, got {text!r}")
+    seconds = 0.0
+    for p in parts:
+        seconds = 60.0 * seconds + p
+    if seconds <= 0:
+        raise InputError(f"--walltime must be positive, got {text!r}")
+    return seconds
+
+
+def resolve_scene(comm, args):
+    """(scene, restart BlockState or None). A restart takes its scene from the checkpoint;
+    a scene or --set given beside it may change only config.RESTART_MAY_CHANGE."""
+    from . import config
+    if not args.restart:
+        return config.load(args.scene, args.overrides, args.seed), None
+    from .io.checkpoint import CheckpointError
+    from .output import read_state
+    try:
+        state, table, _ = read_state(comm, args.restart)
+    except CheckpointError as e:
+        raise InputError(str(e)) from None
+    if isinstance(table, str):
+        table = json.loads(table)
+    scene = config.load(args.scene, args.overrides, args.seed, base=table)
+    changed = config.physics_changes(table, scene.as_dict())
+    if changed:
+        raise InputError(f"--restart: the scene changes {', '.join(changed[:3])}; only "
+                         f"{', '.join(k + ('.*' if k != 'name' else '') for k in config.RESTART_MAY_CHANGE)} "
+                         f"may change on a restart")
+    return scene, state
+
+
+def prepare_outputs(out, dump):
+    """Create the output folder (and the dump file's folder); a one-line error or None."""
+    if dump is not None:
+        if not dump.endswith(".npz"):
+            return f"--dump expects a file name ending in .npz, got {dump!r}"
+        if os.path.isdir(dump):
+            return f"--dump: {dump} is a folder"
+    for folder, what in ((out, "--out"), (os.path.dirname(os.path.abspath(dump)) if dump else None, "--dump")):
+        if folder is None:
+            continue
+        if os.path.exists(folder) and not os.path.isdir(folder):
+            return f"{what}: {folder} exists and is not a folder"
+        try:
+            os.makedirs(folder, exist_ok=True)
+        except OSError as e:
+            return f"{what}: cannot create folder {folder}: {e.strerror}"
+        if not os.access(folder, os.W_OK):
+            return f"{what}: folder {folder} is not writable"
+    summary = os.path.join(out, "summary.json")
+    if os.path.isdir(summary):
+        return f"--out: {summary} is a folder"
+    return None
+
+
+def install_signal_handlers():
+    """SIGTERM, SIGUSR1 (Slurm's --signal) and SIGINT ask every rank to checkpoint and stop at
+    the end of the current iteration; a second SIGINT stops at once (exit 130, one line)."""
+    from .solver import request_stop, stop_requested
+
+    def handler(signum, frame):
+        if signum == signal.SIGINT and stop_requested():
+            print("mpipack: interrupted again: stopping now, without a checkpoint", file=sys.stderr, flush=True)
+            os._exit(130)
+        request_stop(signum)
+
+    for sig in (signal.SIGTERM, signal.SIGUSR1, signal.SIGINT):
+        signal.signal(sig, handler)
+
+
+def walltime_hook(comm, limit, checkpoints, n, dim):
+    """Stop (and checkpoint) before ``limit`` seconds of the process have passed: the margin is
+    twice the last checkpoint's write time (before the first one, 0.25 s plus the state's size
+    at 50 MB/s), 10 iterations and 1 s. Every input is the same on every rank: a collective
+    decision."""
+    from .hooks import STOP, Hook
+    from .timers import process_age_seconds
+    first_estimate = 0.25 + n * (3 * dim + 2) * 8 / 50e6
+    state = {"offset": None, "t": 0.0, "it": 0, "per_it": 0.0}
+
+    def start(ctx):  # seconds of the process before the loop began, rank 0's
+        state["offset"] = comm.bcast_object(process_age_seconds())
+        state["it"] = ctx.iteration
+
+    def check(ctx):
+        dt, dn = ctx.elapsed - state["t"], ctx.iteration - state["it"]
+        if dn > 0:
+            state["per_it"] = max(state["per_it"] * 0.9, dt / dn)
+        state["t"], state["it"] = ctx.elapsed, ctx.iteration
+        write = checkpoints.last_seconds if checkpoints.last_seconds is not None else first_estimate
+        margin = 2.0 * write + 10.0 * state["per_it"] + 1.0
+        if state["offset"] + ctx.elapsed + margin >= limit:
+            return STOP
+        return None
+
+    return [Hook(start, at_start=True, name="walltime-start"), Hook(check, every=1, name="walltime")]
+
+
+def write_summary(out, summary, rank0):
+    """summary.json in the run folder; if that fails, a fallback file (whose path is printed).
+    Returns the path written, or None on other ranks."""
+    if not rank0:
+        return None
+    text = json.dumps(summary, indent=2, default=_json_default) + "\n"
+    path = os.path.join(out, "summary.json")
+    for target in (path, os.path.join(os.getcwd(), f"mpipack-summary-{os.getpid()}.json"),
+                   os.path.join("/tmp", f"mpipack-summary-{os.getpid()}.json")):
+        try:
+            tmp = target + ".tmp"
+            with open(tmp, "w") as f:
+                f.write(text)
+            os.replace(tmp, target)
+        except OSError as e:
+            print(f"mpipack: warning: cannot write {target}: {e.strerror}", file=sys.stderr, flush=True)
+            continue
+        if target != path:
+            print(f"mpipack: the summary is in {target}", file=sys.stderr, flush=True)
+        return target
+    return None
+
+
+def _json_default(o):
+    try:
+        import numpy as np
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+    except ImportError:
+        pass
+    return str(o)
+
+
+def base_summary(comm, scene, args):
+    return {"scene": scene.name, "method": scene.method.name, "form": scene.method.form,
+            "dim": scene.dim, "n": scene.n, "ranks": comm.size, "seed": scene.seed,
+            "version": __version__, "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+            "command_line": sys.argv, "restart_from": args.restart,
+            "parameters": {k: getattr(scene.method, k) for k in
+                           ("alpha", "beta", "gamma", "c", "l_inner", "eps_inner", "tau")},
+            "stop_rule": scene.stop.rule, "eps": scene.stop.eps, "max_iter": scene.stop.max_iter,
+            "resolved_scene": scene.as_dict()}
+
+
+def execute(comm, args):
+    """One ``mpipack run`` on every rank of ``comm``; returns the exit code (the same on every
+    rank). Prints on rank 0 only."""
+    from . import config
+    rank0 = comm.rank == 0
+    err, scene, state, walltime = None, None, None, None
+    try:
+        walltime = parse_walltime(args.walltime) if args.walltime else None
+        scene, state = resolve_scene(comm, args)
+    except (config.SceneError, InputError) as e:
+        err = str(e)
+    errs = comm.allgather_object(err)
+    first = next((e for e in errs if e), None)
+    if first:
+        return fail(comm, EXIT_INPUT, first)
+    out = args.out or scene.output.dir
+    if out is None:
+        restart_dir = args.restart if args.restart and os.path.isdir(args.restart) else \
+            (os.path.dirname(os.path.abspath(args.restart)) if args.restart else None)
+        out = restart_dir or os.path.join("mpipack-out", scene.name)
+    err = prepare_outputs(out, args.dump) if rank0 else None
+    err = comm.bcast_object(err)
+    if err:
+        return fail(comm, EXIT_INPUT, err)
+    install_signal_handlers()
+    try:
+        return _execute(comm, args, scene, state, out, walltime)
+    except SystemExit:
+        raise
+    except BaseException as e:  # a bug: keep what can be kept, then abort the job
+        import traceback
+        traceback.print_exc()
+        sys.stderr.flush()
+        write_summary(out, {**base_summary(comm, scene, args), "exit_code": EXIT_INTERNAL,
+                            "exit_status": EXIT_MEANING[EXIT_INTERNAL], "error": repr(e)}, rank0)
+        if comm.size > 1:
+            comm.abort(EXIT_INTERNAL)
+        return EXIT_INTERNAL
+
+
+def fail(comm, code, message):
+    """Rank 0 prints the one-line error; every rank returns ``code``."""
+    if comm is None or comm.rank == 0:
+        print(f"mpipack: error: {message}", file=sys.stderr, flush=True)
+    sys.stdout.flush()
+    return code
+
+
+def _execute(comm, args, scene, state, out, walltime):
+    from . import hooks as hooks_mod
+    from . import output
+    from . import solver as solver_mod
+    rank0 = comm.rank == 0
+    m = scene.method
+    every = scene.output.progress_every
+    show = rank0 and not args.quiet and every > 0
+    start_iter = state.iteration if state is not None else 0
+    if show:
+        print(f"mpipack: scene {scene.name}: {m.name.upper()}-{m.form} dim={scene.dim} "
+              f"N={scene.n} on {comm.size} rank(s); alpha={m.alpha:g} beta={m.beta:g} "
+              f"gamma={m.gamma:g} c={m.c:g}; stop: {scene.stop.rule}"
+              + (f"; restart from iteration {start_iter}" if state is not None else ""), flush=True)
+        print(f"{'iteration':>10} {'rel.change':>11} {'max overlap':>11} {'contacts':>9} {'it/s':>9}", flush=True)
+    hooks = [hooks_mod.progress_printer(scene, comm, every)] if show else []
+    if scene.output.metrics_every > 0:
+        hooks.append(hooks_mod.metrics_recorder(scene, comm, os.path.join(out, "metrics.csv"),
+                                                scene.output.metrics_every,
+                                                resume_after=start_iter if state is not None else None))
+    snapshots = None
+    if scene.output.snapshots:
+        snapshots = output.Snapshots(scene, comm, out, scene.output.snapshot_every,
+                                     truncate_after=start_iter if state is not None else None)
+        hooks += snapshots.hooks()
+    checkpoints = output.Checkpoints(scene, comm, out, scene.output.checkpoint_every)
+    hooks += checkpoints.hooks()
+    if walltime is not None:
+        hooks += walltime_hook(comm, walltime, checkpoints, scene.n, scene.dim)
+    summary = base_summary(comm, scene, args)
+    t0 = time.perf_counter()
+    code, message, res, solver = None, None, None, None
+    try:
+        solver, res = solver_mod.run(scene, comm, hooks=hooks, source=state, profile=args.profile)
+    except solver_mod.NumericalError as e:
+        code, message, solver = EXIT_NUMERICAL, str(e), e.solver
+    except solver_mod.TooDenseError as e:
+        code, message = EXIT_INPUT, str(e)
+    wall = time.perf_counter() - t0
+    files = []
+    if solver is not None and code == EXIT_NUMERICAL:
+        # the last good state: for ParaView and for a look at what went wrong
+        checkpoints.write(solver)
+        files.append(checkpoints.path)
+        if snapshots is not None:
+            snapshots.write(solver, solver.state.iteration, wall, {})
+    if res is not None:
+        if res["stop_reason"] in ("signal", "walltime"):
+            checkpoints.write(solver)
+            code = EXIT_CHECKPOINTED
+        elif code is None:
+            code = exit_code(scene, res)
+        summary.update(result_summary(scene, comm, res, wall, args.profile))
+    if checkpoints.last_iteration is not None:
+        files.append(checkpoints.path)
+        summary["checkpoint"] = {"path": checkpoints.path, "iteration": checkpoints.last_iteration,
+                                 "write_seconds": checkpoints.last_seconds}
+    if snapshots is not None:
+        snapshots.close()
+        if snapshots.last_iteration is not None:
+            files += [snapshots.path, os.path.splitext(snapshots.path)[0] + ".xmf"]
+            summary["snapshot_seconds"] = snapshots.seconds
+    if args.dump and solver is not None:
+        data = solver.gather()
+        if rank0:
+            files.append(save_dump(args.dump, out, data))
+    summary.update({"exit_code": code, "exit_status": EXIT_MEANING[code], "error": message,
+                    "files": sorted(set(f for f in files if f))})
+    path = write_summary(out, summary, rank0)
+    if code in (EXIT_NUMERICAL, EXIT_INPUT):
+        return fail(comm, code, message)
+    if rank0 and not args.quiet:
+        print_result(scene, res, wall, path, code, checkpoints)
+        if args.profile:
+            from .solver import profile_lines
+            print("mpipack: time per phase of the loop", flush=True)
+            for line in profile_lines(res):
+                print("  " + line, flush=True)
+    return code
+
+
+def save_dump(path, out, data):
+    """np.savez of the gathered state; on failure a fallback file in the run folder (or /tmp),
+    whose path is printed. Returns the path written."""
+    import numpy as np
+    for target in (path, os.path.join(out, f"final-{os.getpid()}.npz"),
+                   os.path.join("/tmp", f"mpipack-final-{os.getpid()}.npz")):
+        try:
+            np.savez(target, **data)
+        except OSError as e:
+            print(f"mpipack: warning: cannot write {target}: {e.strerror or e}", file=sys.stderr, flush=True)
+            continue
+        if target != path:
+            print(f"mpipack: the final particles are in {target}", file=sys.stderr, flush=True)
+        return target
+    return None
+
+
+def result_summary(scene, comm, res, wall, profile):
+    from .cli_text import density_valid
+    out = {
+        "iterations": res["iterations"], "converged": res["converged"],
+        "stop_reason": res["stop_reason"], "certificate": res["certificate"],
+        "wall_seconds": wall, "relative_change": res["relative_change"],
+        "max_overlap": res["max_overlap"], "W": res["W"], "kkt_residual": res["kkt_residual"],
+        "complementarity": res["complementarity"], "overlap_A": res["overlap_A"],
+        "density": res["density"] if density_valid(scene, res) else None,
+        "density_radius": res["density_radius"],
+        "particle_iterations_per_second": res["particle_iterations_per_second"],
+        "particle_iterations_per_second_per_rank": res["particle_iterations_per_second"] / comm.size,
+        "loop_seconds": res["loop_seconds"], "setup_seconds": res["setup_seconds"],
+        "first_iteration_seconds": res["first_iteration_seconds"],
+        "active_pairs": res["active_pairs"],
+    }
+    for k in ("rebuilds", "rebalances", "far_ghosts", "max_imbalance", "inner_iterations"):
+        out[k] = res[k]
+    if profile:
+        out["profile"] = res["profile"]
+    return out
+
+
+def exit_code(scene, res):
+    """0 when certified; under the paper's rule (stop.rule = "eps") also when (4.3) fired, or
+    when stop.eps = 0 asked for a fixed number of iterations; 4 otherwise."""
+    if res["converged"]:
+        return EXIT_OK
+    if scene.stop.rule == "eps" and (scene.stop.eps == 0 or res["stop_reason"] == "eps"):
+        return EXIT_OK
+    return EXIT_NOT_CONVERGED
+
+
+def print_result(scene, res, wall, summary_path, code, checkpoints):
+    from .cli_text import certificate_line, density_line, verdict
+    lines = [f"mpipack: {verdict(scene, res)} after {res['iterations']} iterations in {wall:.2f} s "
+             f"({res['particle_iterations_per_second']:.3g} particle-iterations/s)",
+             f"  {certificate_line(res['certificate'])}",
+             f"  relative change {res['relative_change']:.3e}, W = {res['W']:.10g}",
+             f"  {density_line(scene, res)}"]
+    if code == EXIT_CHECKPOINTED:
+        lines.append(f"  stopped by {res['stop_reason']}: checkpoint of iteration "
+                     f"{checkpoints.last_iteration} in {checkpoints.path}; continue with "
+                     f"mpipack run --restart {os.path.dirname(checkpoints.path)}")
+    lines.append(f"  summary: {summary_path}")
+    print("\n".join(lines), flush=True)

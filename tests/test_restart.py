@@ -1,0 +1,154 @@
+"""Checkpoints and restarts through the command line: a run restarted on another number of
+ranks continues bit for bit as the uninterrupted run; signals and --walltime stop every rank
+at the same iteration with a checkpoint (exit 5); numerical trouble keeps the last good state;
+summary.json on every exit; nothing lost when an output fails."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from conftest import assert_bitwise_equal, describe, mpi_env, mpipack_run
+
+FIXED = ["stop.rule=eps", "stop.eps=0"]
+CASES = {
+    # expanding Gaussian start: migrations, rebuilds, far partners on several ranks
+    "daha": ["n=300"] + FIXED,
+    "nap": ["n=60", "method.name=nap", "method.form=NS", "method.alpha=0.1", "method.beta=0.16",
+            "method.l_inner=20"] + FIXED,
+}
+
+
+def run_cli(P, workdir, sets, extra=(), timeout=300):
+    workdir.mkdir(parents=True, exist_ok=True)
+    return mpipack_run(P, workdir, None, sets, dump=True, extra=extra, timeout=timeout)
+
+
+@pytest.mark.parametrize("case,total,split,ranks", [
+    ("daha", 600, 250, (1, 3)), ("daha", 600, 300, (3, 2)), ("nap", 40, 15, (1, 3)), ("nap", 40, 20, (3, 2)),
+])
+def test_restart_on_other_rank_counts_is_bitwise(tmp_path, case, total, split, ranks):
+    sets = CASES[case]
+    p_ref, s_ref, d_ref = run_cli(1, tmp_path / "ref", sets + [f"stop.max_iter={total}"])
+    assert p_ref.returncode == 0, describe(p_ref)
+    first, second = ranks
+    p1, s1, _ = run_cli(first, tmp_path / "run", sets + [f"stop.max_iter={split}",
+                                                          f"output.checkpoint_every={split}"])
+    assert p1.returncode == 0 and s1["checkpoint"]["iteration"] == split, describe(p1)
+    p2, s2, d2 = run_cli(second, tmp_path / "run", [f"stop.max_iter={total}"],
+                         extra=["--restart", tmp_path / "run" / "out"])
+    assert p2.returncode == 0, describe(p2)
+    assert s2["iterations"] == total and s2["ranks"] == second and s2["restart_from"]
+    assert_bitwise_equal(d_ref, d2, f"{case}: {first} ranks to {split}, then {second} ranks to {total}")
+    assert s2["W"] == s_ref["W"]
+
+
+def test_restart_refuses_a_change_of_physics(tmp_path):
+    p1, s1, _ = run_cli(1, tmp_path, ["n=50", "stop.max_iter=20", "output.checkpoint_every=20"] + FIXED)
+    assert p1.returncode == 0, describe(p1)
+    p2, _, _ = run_cli(1, tmp_path / "again", ["method.alpha=0.01"], extra=["--restart", tmp_path / "out"])
+    assert p2.returncode == 2, describe(p2)
+    assert "method.alpha" in p2.stderr and "Traceback" not in p2.stderr, describe(p2)
+
+
+@pytest.mark.parametrize("content", [b"", b"not hdf5 at all", b"\x89HDF\r\n\x1a\n" + b"\0" * 100])
+def test_bad_checkpoint_is_one_line_exit_2(tmp_path, content):
+    f = tmp_path / "checkpoint.h5"
+    f.write_bytes(content)
+    p, _, _ = run_cli(2, tmp_path, [], extra=["--restart", f])
+    assert p.returncode == 2, describe(p)
+    errors = [line for line in p.stderr.splitlines() if "error:" in line]
+    assert len(errors) == 1 and "Traceback" not in p.stderr, describe(p)
+
+
+def long_run(P, out, sets=()):
+    args = ["mpirun", "--oversubscribe", "-n", str(P), sys.executable, "-m", "mpipack.cli", "run",
+            "--quiet", "--out", str(out), "--set", "n=2000", "--set", "stop.max_iter=100000000"]
+    for s in list(FIXED) + list(sets):
+        args += ["--set", s]
+    return subprocess.Popen(args, cwd=str(out.parent), env=mpi_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+@pytest.mark.parametrize("P", [1, 2, 3])
+def test_sigusr1_checkpoints_every_rank_and_exits_5(tmp_path, P):
+    out = tmp_path / "out"
+    proc = long_run(P, out)
+    deadline = time.time() + 120
+    while not (out / "summary.json").exists() and time.time() < deadline:
+        time.sleep(0.5)
+        if (out / "snapshots.h5").exists() or proc.poll() is not None:
+            break
+    time.sleep(4)  # well inside the loop
+    proc.send_signal(signal.SIGUSR1)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 5, (proc.returncode, stdout, stderr)
+    s = json.loads((out / "summary.json").read_text())
+    assert s["exit_code"] == 5 and s["stop_reason"] == "signal"
+    assert s["checkpoint"]["iteration"] == s["iterations"] > 0
+    assert "Traceback" not in stderr
+    # the checkpoint continues the run: to the signal's iteration + 10, the same as straight
+    total = s["iterations"] + 10
+    p2, s2, d2 = run_cli(2, tmp_path / "again", [f"stop.max_iter={total}"], extra=["--restart", out])
+    assert p2.returncode == 0, describe(p2)
+    p3, s3, d3 = run_cli(1, tmp_path / "straight", ["n=2000", f"stop.max_iter={total}"] + FIXED)
+    assert_bitwise_equal(d3, d2, "signal checkpoint + restart vs straight")
+
+
+def test_walltime_checkpoints_before_the_limit(tmp_path):
+    t0 = time.time()
+    p, s, _ = run_cli(2, tmp_path, ["n=2000", "stop.max_iter=100000000"] + FIXED,
+                      extra=["--walltime", "00:00:12"])
+    assert p.returncode == 5, describe(p)
+    assert time.time() - t0 < 12 + 5
+    assert s["stop_reason"] == "walltime" and s["checkpoint"]["iteration"] == s["iterations"] > 10
+
+
+def test_numerical_trouble_keeps_the_last_good_state(tmp_path):
+    p, s, _ = run_cli(1, tmp_path, ["n=500", "method.beta=1e15", "stop.max_iter=2000"])
+    assert p.returncode == 3, describe(p)
+    assert s["exit_code"] == 3 and "diverges" in s["error"]
+    ck = tmp_path / "out" / "checkpoint.h5"
+    assert ck.exists() and any(f.endswith("checkpoint.h5") for f in s["files"]), s["files"]
+    from mpipack.io.checkpoint import read_checkpoint
+    from mpipack.comm import Comm
+    block, scalars, _ = read_checkpoint(Comm(), str(ck))
+    import numpy as np
+    assert np.all(np.isfinite(block["x"]))
+
+
+def test_summary_on_every_exit_says_what_ran(tmp_path):
+    p, s, _ = run_cli(1, tmp_path, ["n=50", "stop.max_iter=10"] + FIXED)
+    assert p.returncode == 0, describe(p)
+    for key in ("resolved_scene", "version", "date", "command_line", "ranks", "exit_code", "exit_status"):
+        assert key in s, key
+    assert s["resolved_scene"]["n"] == 50 and s["exit_code"] == 0 and s["ranks"] == 1
+
+
+def test_a_failed_output_keeps_the_result(tmp_path):
+    p, s, _ = mpipack_run(1, tmp_path, None, ["n=50", "stop.max_iter=10"] + FIXED,
+                          extra=["--dump", "/proc/final.npz"])
+    assert p.returncode == 0, describe(p)
+    assert "the final particles are in" in p.stderr, describe(p)
+    kept = [f for f in s["files"] if f.endswith(".npz")]
+    assert kept and os.path.exists(kept[0])
+
+
+def test_vtk_command(tmp_path):
+    p, s, _ = run_cli(2, tmp_path, ["n=100", "stop.max_iter=40", "output.snapshot_every=20"] + FIXED)
+    assert p.returncode == 0, describe(p)
+    out = tmp_path / "out"
+    v = subprocess.run(["mpirun", "--oversubscribe", "-n", "2", sys.executable, "-m", "mpipack.cli", "vtk", str(out)],
+                       cwd=str(tmp_path), env=mpi_env(), capture_output=True, text=True, timeout=300)
+    assert v.returncode == 0, describe(v)
+    import meshio
+    vtus = sorted((out / "vtk").glob("*.vtu"))
+    assert len(vtus) == 2  # iterations 20 and 40 (the final state is iteration 40)
+    mesh = meshio.read(vtus[-1])
+    assert mesh.points.shape == (100, 3)
+    assert set(mesh.point_data) >= {"diameter", "pressure", "contacts"}
+    assert (out / "snapshots.pvd").exists()
