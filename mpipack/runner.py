@@ -149,19 +149,29 @@ def write_summary(out, summary, rank0):
     if not rank0:
         return None
     text = json.dumps(summary, indent=2, default=_json_default) + "\n"
-    path = os.path.join(out, "summary.json")
-    for target in (path, os.path.join(os.getcwd(), f"mpipack-summary-{os.getpid()}.json"),
-                   os.path.join("/tmp", f"mpipack-summary-{os.getpid()}.json")):
+
+    def write(target):
+        with open(target + ".tmp", "w") as f:
+            f.write(text)
+        os.replace(target + ".tmp", target)
+
+    return write_with_fallback(write, [os.path.join(out, "summary.json"),
+                                       os.path.join(os.getcwd(), f"mpipack-summary-{os.getpid()}.json"),
+                                       os.path.join("/tmp", f"mpipack-summary-{os.getpid()}.json")],
+                               "the summary")
+
+
+def write_with_fallback(write, targets, what):
+    """write(target) for the first target that works; a warning per failure, and the path when
+    it is not the first one. Returns the path written, or None."""
+    for target in targets:
         try:
-            tmp = target + ".tmp"
-            with open(tmp, "w") as f:
-                f.write(text)
-            os.replace(tmp, target)
+            write(target)
         except OSError as e:
-            print(f"mpipack: warning: cannot write {target}: {e.strerror}", file=sys.stderr, flush=True)
+            print(f"mpipack: warning: cannot write {target}: {e.strerror or e}", file=sys.stderr, flush=True)
             continue
-        if target != path:
-            print(f"mpipack: the summary is in {target}", file=sys.stderr, flush=True)
+        if target != targets[0]:
+            print(f"mpipack: {what}: written to {target} instead", file=sys.stderr, flush=True)
         return target
     return None
 
@@ -322,17 +332,10 @@ def save_dump(path, out, data):
     """np.savez of the gathered state; on failure a fallback file in the run folder (or /tmp),
     whose path is printed. Returns the path written."""
     import numpy as np
-    for target in (path, os.path.join(out, f"final-{os.getpid()}.npz"),
-                   os.path.join("/tmp", f"mpipack-final-{os.getpid()}.npz")):
-        try:
-            np.savez(target, **data)
-        except OSError as e:
-            print(f"mpipack: warning: cannot write {target}: {e.strerror or e}", file=sys.stderr, flush=True)
-            continue
-        if target != path:
-            print(f"mpipack: the final particles are in {target}", file=sys.stderr, flush=True)
-        return target
-    return None
+    return write_with_fallback(lambda target: np.savez(target, **data),
+                               [path, os.path.join(out, f"final-{os.getpid()}.npz"),
+                                os.path.join("/tmp", f"mpipack-final-{os.getpid()}.npz")],
+                               "the final particles")
 
 
 def result_summary(scene, comm, res, wall, profile):

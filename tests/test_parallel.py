@@ -171,10 +171,11 @@ def test_divergence_exits_3(run_mpipack):
     proc, summary, _ = run_mpipack(2, None, ["n=400", "method.alpha=30"], timeout=120)
     assert proc.returncode == 3, describe(proc)
     line = error_line(proc)
-    assert "diverging" in line or "NaN" in line, describe(proc)
+    assert "diverg" in line or "NaN" in line, describe(proc)
     assert "iteration" in line
     assert "Traceback" not in proc.stderr, describe(proc)
-    assert summary is None
+    # summary.json on every exit, with the error
+    assert summary["exit_code"] == 3 and summary["error"] == line.split("error: ", 1)[1], summary
 
 
 def test_not_converged_exits_4(run_mpipack):

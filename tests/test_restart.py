@@ -133,7 +133,7 @@ def test_a_failed_output_keeps_the_result(tmp_path):
     p, s, _ = mpipack_run(1, tmp_path, None, ["n=50", "stop.max_iter=10"] + FIXED,
                           extra=["--dump", "/proc/final.npz"])
     assert p.returncode == 0, describe(p)
-    assert "the final particles are in" in p.stderr, describe(p)
+    assert "the final particles: written to" in p.stderr, describe(p)
     kept = [f for f in s["files"] if f.endswith(".npz")]
     assert kept and os.path.exists(kept[0])
 
