@@ -60,6 +60,8 @@ class Certifier:
         if not h or h[0][0] > target:
             return math.inf
         old = h[0][1]
+        if w == old:  # also W = 0 throughout (one sphere, or nothing to pull together)
+            return 0.0
         if not (w > 0):
             return math.inf
         return abs(w - old) / w

@@ -83,6 +83,34 @@ def _parser():
     pp.add_argument("--quick", action="store_true", help="a reduced run (under a minute)")
     pp.add_argument("--out", default=None, help="output folder (default mpipack-out/paper[-quick])")
     sub.add_parser("scenes", help="list the built-in scenes")
+    k = sub.add_parser("check", help="validate a scene and judge it before a run: stability verdict with its "
+                                     "margin, overlapping pairs of the start, memory per rank (exit 0 stable, 3 not)")
+    k.add_argument("scene", nargs="?", default=None, help="a TOML file or a built-in scene name (mpipack scenes)")
+    k.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a scene key, as for run (repeatable)")
+    k.add_argument("--seed", type=int, default=None, help="random seed of the initial data")
+    k.add_argument("--ranks", type=_count, default=None,
+                   help="ranks of the planned run, for the memory per rank (default: this launch's, else 1)")
+    st = sub.add_parser("suite", help="run the stiff and extreme cases (each a real mpipack run under mpirun, "
+                                      "with a timeout) and write a table of outcomes")
+    st.add_argument("--quick", action="store_true", help="a representative subset (under about 2 minutes)")
+    st.add_argument("--out", default=None, help="output folder (default mpipack-out/suite[-quick])")
+    st.add_argument("--cases", default=None, metavar="NAME,...", help="run only these cases (names as in the table)")
+    cp = sub.add_parser("compare", help="work-precision diagrams: error measures against wall time and iterations "
+                                        "for several methods, tolerances and seeds (PNG, CSV, markdown)")
+    cp.add_argument("scene", nargs="?", default=None, help="a TOML file or a built-in scene name")
+    cp.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a scene key for every run (repeatable)")
+    cp.add_argument("--methods", default=None, metavar="M,...",
+                    help="methods, e.g. DAHA-S,NAP-NS,scene or DAHA-S:alpha=0.04:beta=0.15 "
+                         "(default: the paper's that apply, plus the scene's own)")
+    cp.add_argument("--tolerances", default=None, metavar="EPS,...", help="the ladder of (4.3) tolerances")
+    cp.add_argument("--seeds", default=None, metavar="S,...", help="seeds (a list, or a count K for 1..K)")
+    cp.add_argument("--peer", action="append", default=[], metavar="[LABEL=]FILE",
+                    help="add a peer code's curve: a CSV in compare's format or a tools/peers/lammps_fire.py "
+                         "--keep-checks JSON (repeatable; one file per seed)")
+    cp.add_argument("--quick", action="store_true", help="N = 7 and N = 100, few seeds (about a minute)")
+    cp.add_argument("--out", default=None, help="output folder (default mpipack-out/compare[-quick])")
     return p
 
 
@@ -100,6 +128,19 @@ def main(argv=None):
             return EXIT_INPUT
         from .experiments import paper
         return paper.main(args)
+    if args.command == "check":
+        from . import check
+        return check.main(args, _world_rank())
+    if args.command in ("suite", "compare"):
+        if args.out is not None and os.path.exists(args.out) and not os.path.isdir(args.out):
+            if _world_rank() == 0:
+                print(f"mpipack: error: --out: {args.out} exists and is not a folder", file=sys.stderr)
+            return EXIT_INPUT
+        if args.command == "suite":
+            from . import suite
+            return suite.main(args)
+        from .experiments import compare
+        return compare.main(args)
     if args.command == "bench":
         from . import bench
         return bench.main(args)

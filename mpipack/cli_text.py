@@ -20,6 +20,8 @@ def verdict(scene, res):
     if res["converged"]:
         return "converged (certified)"
     if scene.stop.rule == "eps" and res["stop_reason"] == "eps":
+        if not res["certificate"]["overlap"]["ok"]:
+            return "stopped by (4.3) on an overlapping configuration, NOT a packing"
         return "stopped by (4.3), NOT certified"
     if scene.stop.rule == "eps" and scene.stop.eps == 0:
         return "ran the requested iterations, not certified"

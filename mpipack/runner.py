@@ -362,11 +362,15 @@ def result_summary(scene, comm, res, wall, profile):
 
 
 def exit_code(scene, res):
-    """0 when certified; under the paper's rule (stop.rule = "eps") also when (4.3) fired, or
-    when stop.eps = 0 asked for a fixed number of iterations; 4 otherwise."""
+    """0 when certified; under the paper's rule (stop.rule = "eps") also when stop.eps = 0 asked
+    for a fixed number of iterations, or when (4.3) fired on a feasible configuration (max
+    overlap within stop.overlap: (4.3) can fire where nothing moves, e.g. all centres at one
+    point); 4 otherwise."""
     if res["converged"]:
         return EXIT_OK
-    if scene.stop.rule == "eps" and (scene.stop.eps == 0 or res["stop_reason"] == "eps"):
+    if scene.stop.rule == "eps" and scene.stop.eps == 0:
+        return EXIT_OK
+    if scene.stop.rule == "eps" and res["stop_reason"] == "eps" and res["certificate"]["overlap"]["ok"]:
         return EXIT_OK
     return EXIT_NOT_CONVERGED
 
