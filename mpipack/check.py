@@ -684,10 +684,20 @@ def _gib(x):
 def report_lines(scene, ranks):
     """(stable, lines, memory dict) for rank 0 to print."""
     m = scene.method
-    stable, rep = verdict(scene)
     L = []
     tag = f"{m.name.upper()}-{m.form}"
     L.append("## Stability")
+    if m.schedule == "fire-al":
+        stable = True
+        L.append("Schedule fire-al: no fixed parameters to judge. Each iteration's step is bounded by "
+                 "the stiffest row of that iteration (FIRE's dt <= sqrt(1/k_rel), k_rel the reduced "
+                 "largest Gershgorin row of the augmented Lagrangian, momentum restarted when the power "
+                 "turns negative); the explosion of a dense start uses the gamma term's CFL bound at the "
+                 "packing law's multipliers (mpipack/schedule.py).")
+        L.append(f"Verdict: STABLE by construction ({tag}, N = {scene.n}, dim {scene.dim}; schedule fire-al)")
+        start, mem = _start_lines(scene, ranks)
+        return stable, L + start, mem
+    stable, rep = verdict(scene)
     two = rep["two"]
     if two is not None:
         L.append(f"Two free spheres (exact for N = 2; d = {two['d']:.6g}): fixed point r = d, lambda = "
@@ -740,6 +750,13 @@ def report_lines(scene, ranks):
              if scene.n > 2 else "nothing to iterate")
     L.append(f"Verdict: {'STABLE' if stable else 'NOT STABLE'} ({tag}, N = {scene.n}, dim {scene.dim}; {basis})")
     L += margin
+    start, mem = _start_lines(scene, ranks)
+    return stable, L + start, mem
+
+
+def _start_lines(scene, ranks):
+    """The report's start and memory section: (lines, memory dict)."""
+    L = []
     mem = start_and_memory(scene, ranks)
     L.append("")
     L.append("## Start and memory")
@@ -763,7 +780,7 @@ def report_lines(scene, ranks):
     if mem["suggested_sigma"] is not None:
         L.append(f"  suggested spread: init.sigma >= {mem['suggested_sigma']:.4g} (rows within 80% of the budget), "
                  f"or more ranks/nodes, or init.kind = \"ball\"")
-    return stable, L, mem
+    return L, mem
 
 
 def _daha_gamma_window(scene):

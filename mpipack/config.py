@@ -23,6 +23,12 @@ METHODS = ("daha", "aha", "nap", "nav")
 FORMS = ("S", "NS")
 INIT_KINDS = ("gaussian", "ball", "lattice")
 STOP_RULES = ("certified", "eps")
+SCHEDULES = ("fixed", "fire-al")
+# method parameters of the fixed schedule when a scene sets some but not all (the paper's
+# section 4.3 values; gamma, if left out while alpha or beta is given, is sqrt(alpha beta):
+# (2.10) exactly)
+FIXED_FALLBACK = {"alpha": 7.8e-3, "beta": 2.8e3, "c": 2.0}
+PAPER_GAMMA = 1.6e-2  # with the fallback alpha and beta
 
 DEFAULTS = {
     "name": "scene",
@@ -31,9 +37,9 @@ DEFAULTS = {
     "seed": 1,
     "particles": {"diameter": 1.0, "diameter_max": None},
     "init": {"kind": "gaussian", "sigma": "auto", "fraction": 0.5, "spacing": 1.0, "jitter": 0.0},
-    "method": {"name": "daha", "form": "S", "alpha": 7.8e-3, "beta": 2.8e3, "gamma": None, "c": 2.0,
-               "l_inner": 10, "eps_inner": 1e-9, "tau": 0.1},
-    "stop": {"rule": "eps", "eps": 1e-5, "max_iter": 100000, "max_seconds": 0.0, "overlap": 1e-3,
+    "method": {"name": "daha", "form": "S", "alpha": None, "beta": None, "gamma": None, "c": None,
+               "schedule": None, "l_inner": 10, "eps_inner": 1e-9, "tau": 0.1},
+    "stop": {"rule": None, "eps": 1e-5, "max_iter": 100000, "max_seconds": 0.0, "overlap": 1e-3,
              "kkt": 1e-2, "w_rtol": 1e-4, "w_window": 0.1, "check_every": 50},
     "neighbor": {"skin": 0.3, "rebalance": 1.2, "max_pair_gib": None},
     "output": {"progress_every": 0.5, "dir": None, "metrics_every": 0, "w_optimum": None,
@@ -127,10 +133,11 @@ class Init:
 class Method:
     name: str
     form: str
-    alpha: float
-    beta: float
-    gamma: float
-    c: float
+    alpha: Optional[float]  # None under the fire-al schedule (it sets them per iteration)
+    beta: Optional[float]
+    gamma: Optional[float]
+    c: Optional[float]
+    schedule: str
     l_inner: int
     eps_inner: float
     tau: float
@@ -301,14 +308,32 @@ def validate(scene):
         raise SceneError(f"key 'method.name' must be one of {', '.join(METHODS)}, got {m['name']!r}")
     if m["form"] not in FORMS:
         raise SceneError(f"key 'method.form' must be S or NS, got {m['form']!r}")
-    alpha = _num(scene, "method.alpha")
-    beta = _num(scene, "method.beta")
-    _num(scene, "method.c")
+    # a scene that leaves DAHA's parameters out gets the schedule that needs none; one that
+    # sets any of them gets them, fixed, with the paper's section 4.3 values for the rest
+    given = [k for k in ("alpha", "beta", "gamma", "c") if m[k] is not None]
+    if m["schedule"] is None:
+        m["schedule"] = "fire-al" if m["name"] == "daha" and not given else "fixed"
+    if m["schedule"] not in SCHEDULES:
+        raise SceneError(f"key 'method.schedule' must be one of {', '.join(SCHEDULES)}, got {m['schedule']!r}")
+    if m["schedule"] == "fire-al":
+        if m["name"] != "daha":
+            raise SceneError(f"key 'method.schedule': \"fire-al\" schedules DAHA's own steps; method "
+                             f"{m['name']!r} takes \"fixed\"")
+        if given:
+            raise SceneError(f"key 'method.{given[0]}': the fire-al schedule sets alpha, beta, gamma and c "
+                             f"itself; leave them out, or set method.schedule = \"fixed\"")
+    else:
+        if m["alpha"] is None and m["beta"] is None and m["gamma"] is None:
+            m["gamma"] = PAPER_GAMMA  # the paper's whole set, not sqrt of its alpha beta (4.67)
+        for k, v in FIXED_FALLBACK.items():
+            if m[k] is None:
+                m[k] = v
+        _fixed_parameters(scene)
     _num(scene, "method.l_inner", int)
     _num(scene, "method.eps_inner", allow_zero=True)
     _num(scene, "method.tau")
-    if _num(scene, "method.gamma", allow_zero=True, optional=True) is None:
-        m["gamma"] = math.sqrt(alpha * beta)
+    if scene["stop"]["rule"] is None:  # the schedule's own: certified, or the paper's (4.3)
+        scene["stop"]["rule"] = "certified" if m["schedule"] == "fire-al" else "eps"
     if scene["stop"]["rule"] not in STOP_RULES:
         raise SceneError(f"key 'stop.rule' must be one of {', '.join(STOP_RULES)}, got {scene['stop']['rule']!r}")
     _num(scene, "stop.eps", allow_zero=True)
@@ -338,6 +363,15 @@ def validate(scene):
     if scene["output"]["dir"] is not None and not isinstance(scene["output"]["dir"], str):
         raise SceneError("key 'output.dir' must be a string")
     return scene
+
+
+def _fixed_parameters(scene):
+    m = scene["method"]
+    alpha = _num(scene, "method.alpha")
+    beta = _num(scene, "method.beta")
+    _num(scene, "method.c")
+    if _num(scene, "method.gamma", allow_zero=True, optional=True) is None:
+        m["gamma"] = math.sqrt(alpha * beta)
 
 
 # Lengths must stay where the exact sums resolve them: |X|^2 below exactsum.RANGE (~3.9e25,

@@ -194,7 +194,7 @@ def base_summary(comm, scene, args):
             "version": __version__, "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
             "command_line": sys.argv, "restart_from": args.restart,
             "parameters": {k: getattr(scene.method, k) for k in
-                           ("alpha", "beta", "gamma", "c", "l_inner", "eps_inner", "tau")},
+                           ("alpha", "beta", "gamma", "c", "schedule", "l_inner", "eps_inner", "tau")},
             "stop_rule": scene.stop.rule, "eps": scene.stop.eps, "max_iter": scene.stop.max_iter,
             "resolved_scene": scene.as_dict()}
 
@@ -258,8 +258,10 @@ def _execute(comm, args, scene, state, out, walltime):
     start_iter = state.iteration if state is not None else 0
     if show:
         print(f"mpipack: scene {scene.name}: {m.name.upper()}-{m.form} dim={scene.dim} "
-              f"N={scene.n} on {comm.size} rank(s); alpha={m.alpha:g} beta={m.beta:g} "
-              f"gamma={m.gamma:g} c={m.c:g}; stop: {scene.stop.rule}"
+              f"N={scene.n} on {comm.size} rank(s); "
+              + ("schedule fire-al (parameters from N, b, d)" if m.schedule == "fire-al" else
+                 f"alpha={m.alpha:g} beta={m.beta:g} gamma={m.gamma:g} c={m.c:g}")
+              + f"; stop: {scene.stop.rule}"
               + (f"; restart from iteration {start_iter}" if state is not None else ""), flush=True)
         print(f"{'iteration':>10} {'rel.change':>11} {'max overlap':>11} {'contacts':>9} {'it/s':>9}", flush=True)
     hooks = [hooks_mod.progress_printer(scene, comm, every)] if show else []
@@ -356,6 +358,8 @@ def result_summary(scene, comm, res, wall, profile):
     }
     for k in ("rebuilds", "rebalances", "far_ghosts", "max_imbalance", "inner_iterations"):
         out[k] = res[k]
+    if "schedule" in res:
+        out["schedule"] = res["schedule"]  # phase reached, its switch, restarts, ALM steps
     if profile:
         out["profile"] = res["profile"]
     return out

@@ -93,10 +93,16 @@ class Solver:
         self.dim, self.n = scene.dim, scene.n
         m = self.params = scene.method
         self.nested = m.nested
-        self.beta = float(m.beta)
+        self.beta = float(m.beta) if m.beta is not None else 0.0
+        self.schedule = None  # the fire-al schedule, when the scene asks for it
         if self.nested:
             self.coeffs = kernels.nested_coefficients(m.name, m.alpha, m.tau)
             self._kernel = kernels.nested_step(m.name, m.form)
+        elif m.schedule == "fire-al":
+            from . import kernels_fire, schedule
+            p = scene.particles
+            self.schedule = schedule.FireAL(self.n, self.dim, 0.5 * (p.diameter + p.d_max), m.form)
+            self._kernel = kernels_fire.fire_al_step(m.form, self.dim)
         else:
             self.coeffs = kernels.coefficients(m.name, m.alpha, m.beta, m.gamma, m.c)
             self._kernel = kernels.multipliers_and_step(m.form, self.dim)
@@ -117,8 +123,8 @@ class Solver:
         self.run_state = dict  # the loop's own state for a checkpoint (set by run)
         # the per-iteration reduction: the step kernel's block, the load, the loop's clock
         self.red = Reduction()
-        self.red.add_exact("step", [("x", self.dim), ("dx2", 1), ("xx2", 1)])
-        self.red.add_max("step", [("step2", 1), ("overlap", 1)])
+        self.red.add_exact("step", self._step_sums())
+        self.red.add_max("step", self._step_maxima())
         self.red.add_count("active")
         self.red.add_max("load", [("max_local", 1)], fill=lambda: self.state.n_local)
         self.red.add_max("wall", [("wall", 1)], fill=lambda: time.perf_counter() - self.clock0)
@@ -139,6 +145,30 @@ class Solver:
                 f"arrays alone, more than the {budget / 2**30:.3g} GiB available per rank; use more "
                 f"ranks or nodes, or fewer spheres (limit: neighbor.max_pair_gib)")
         self.r_diverge = math.inf  # radius of gyration beyond which the run diverges (initialise)
+
+    def _step_sums(self):
+        """Exact fields the step kernel fills (in its row order)."""
+        fields = [("x", self.dim), ("dx2", 1), ("xx2", 1)]
+        return fields + [("power", 1), ("force2", 1)] if self.schedule else fields
+
+    def _step_maxima(self):
+        fields = [("step2", 1), ("overlap", 1)]
+        return fields + [("max_gain", 1), ("max_row", 1)] if self.schedule else fields
+
+    def _kernel_pass(self, x_other, xbar, red, n_local=None):
+        """One pass of the step kernel over the local particles (the first ``n_local``) into
+        ``red``'s step blocks; returns the number of row entries with lambda > 0."""
+        st = self.state
+        n_local = st.n_local if n_local is None else n_local
+        args = (st.x, x_other, st.x_new, n_local, st.diam, st.pair_offsets, st.pair_j,
+                st.pair_lambda, xbar)
+        if self.schedule is None:
+            return self._kernel(*args, *self.coeffs, self.beta, not st.lambda_fresh,
+                                red.acc("step"), red.maxima("step"))
+        coeffs = self.sched_coeffs
+        # the fire phase updates lambda every pass (its dual steps); the explosion is DAHA
+        update = self.schedule.phase == "fire" or not st.lambda_fresh
+        return self._kernel(*args, *coeffs, update, red.acc("step"), red.maxima("step"))
 
     # ---- set-up ----------------------------------------------------------------------------
     def initialise(self, source=None):
@@ -163,6 +193,8 @@ class Solver:
             hist = (source.hist_offsets(), source.hist_gid, source.hist_lambda)
             st.lambda_fresh, st.iteration = bool(source.lambda_fresh), int(source.iteration)
             self.counters.update(source.counters)
+            if self.schedule is not None and "schedule" in source.extra:
+                self.schedule.restore(source.extra["schedule"])
         ghost = {k: v[:0] for k, v in local.items() if k != "x_prev"}
         lam_fresh = st.lambda_fresh
         st.set_particles(local, ghost)
@@ -173,11 +205,11 @@ class Solver:
         r_start = math.sqrt(2.0 * max(w0, 0.0) / self.n)
         self.r_diverge = DIVERGENCE_FACTOR * max(r_start, self.d_max * self.n ** (1.0 / self.dim))
         # compile (or load from the cache) the step kernel now, so the loop's timing excludes it
-        scratch = Reduction().add_exact("step", [("x", self.dim), ("dx2", 1), ("xx2", 1)]) \
-            .add_max("step", [("step2", 1), ("overlap", 1)]).begin()
-        self._kernel(st.x, st.x_prev, st.x_new, 0, st.diam, st.pair_offsets, st.pair_j,
-                     st.pair_lambda, self.xbar, *self.coeffs, self.beta, False,
-                     scratch.acc("step"), scratch.maxima("step"))
+        scratch = Reduction().add_exact("step", self._step_sums()) \
+            .add_max("step", self._step_maxima()).begin()
+        if self.schedule is not None:
+            self.sched_coeffs = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, False, False, 0.0)
+        self._kernel_pass(st.x_prev, self.xbar, scratch, n_local=0)
         # and the metrics pass, which every run needs at its end (and hooks may ask for sooner)
         measures.measure(self, empty=True)
 
@@ -196,11 +228,29 @@ class Solver:
         if self.nested:
             return nested.outer_step(self)
         st = self.state
+        if self.schedule is not None:
+            self._schedule_before()
         fig = self._advance(st.x_prev, self.xbar)  # (2.10b) then (2.10a)
         self.xbar = fig.pop("xbar")
         st.iteration += 1
         fig["iteration"] = st.iteration
+        if self.schedule is not None:
+            if self.schedule.phase == "fire":
+                st.lambda_fresh = True  # the certificate uses the stored multipliers
+            self.schedule.observe(fig)
         return fig
+
+    def _schedule_before(self):
+        """The schedule's state changes and the coefficients of the next pass."""
+        st = self.state
+        for action in self.schedule.take_pending():
+            if action == "reset_lambda":
+                st.pair_lambda[:] = 0.0
+            elif action == "restart":  # momentum restart: X^{n-1} := X^n
+                st.x_prev[:st.n_local] = st.x[:st.n_local]
+        self.sched_coeffs = self.schedule.coefficients()
+        if self.schedule.phase != "fire":
+            self.beta = self.sched_coeffs[4]  # the explosion's (2.10b), for a mid-run check
 
     def _advance(self, x_other, xbar):
         """One kernel pass and everything after it: the reduction, the numerical guard, the
@@ -210,9 +260,7 @@ class Solver:
         the new positions.
         """
         st, red, t = self.state, self.red.begin(), self.timers
-        n_active = self._kernel(st.x, x_other, st.x_new, st.n_local, st.diam, st.pair_offsets,
-                                st.pair_j, st.pair_lambda, xbar, *self.coeffs, self.beta,
-                                not st.lambda_fresh, red.acc("step"), red.maxima("step"))
+        n_active = self._kernel_pass(x_other, xbar, red)
         st.lambda_fresh = True  # lambda^n, of X^n: the state stays consistent if we stop here
         t.lap(STEP)
         red.set_count("active", n_active)
@@ -235,6 +283,9 @@ class Solver:
             "max_local": int(red.max("max_local")),
             "wall": red.max("wall"),
         }
+        if self.schedule is not None:
+            fig.update(power=red.value("power"), force2=red.value("force2"),
+                       max_gain=red.max("max_gain"), max_row=red.max("max_row"))
         r_gyr = math.sqrt(2.0 * max(fig["W"], 0.0) / self.n)
         if r_gyr > self.r_diverge:
             raise NumericalError(
@@ -314,7 +365,8 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
     certifier = Certifier(stop_rule)
     if source is not None and "certifier" in source.extra:
         certifier.restore(source.extra["certifier"])  # a restart: the same stop decisions
-    solver.run_state = lambda: {"certifier": certifier.save()}
+    solver.run_state = lambda: {"certifier": certifier.save(),
+                                **({"schedule": solver.schedule.save()} if solver.schedule else {})}
     certified_rule = stop_rule.rule == "certified"
     ctx = hooks_mod.Context(solver)
     start_iter = solver.state.iteration
@@ -377,6 +429,8 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
         **final,
         **solver.counters,
     }
+    if solver.schedule is not None:
+        result["schedule"] = solver.schedule.summary()
     if profile:
         result["profile"] = timers.report(comm, loop_seconds)
     ctx.result = result

@@ -87,7 +87,7 @@ def test_dump_needs_an_npz_file(tmp_path, dump):
 def test_blown_out_cloud_is_numerical_trouble(tmp_path):
     """beta = 1e15 throws the spheres apart: detected as divergence (exit 3) within a few
     iterations, not reported as 'not converged'."""
-    proc = cli(["run", "--quiet", "--set", "n=500", "--set", "method.beta=1e15", "--set", "stop.max_iter=2000",
+    proc = cli(["run", "paper-2d", "--quiet", "--set", "n=500", "--set", "method.beta=1e15", "--set", "stop.max_iter=2000",
                 "--out", tmp_path / "o"], tmp_path, timeout=120)
     assert_one_line_error(proc, 3, "diverges")
 

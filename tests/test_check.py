@@ -105,7 +105,7 @@ def test_discrete_eigenvalues_match_the_scheme(method, form, params):
 
 def test_ode_and_scheme_disagree_at_large_steps():
     # the paper's N = 2000 parameters: the ODE is unstable, the scheme stable (rate K/2)
-    sc = config.load("default", ["n=2"])
+    sc = config.load("paper-2d", ["n=2"])
     t = check.two_spheres(sc)
     assert not t["ode_ok"] and t["ok"]
     assert abs(t["rho"] - math.sqrt(1 - t["K"])) < 1e-12
@@ -215,9 +215,13 @@ def test_check_cli_exit_codes(tmp_path):
     assert "Verdict: STABLE" in proc.stdout and "margin" in proc.stdout
     # the paper's N = 2000 parameters: the packed state is predicted unstable (measured: overlap
     # bursts from iteration 5856 on, research/FINDINGS.md section 1)
-    proc = cli(["check"], tmp_path)
+    proc = cli(["check", "paper-2d"], tmp_path)
     assert proc.returncode == 3, describe(proc)
     assert "Verdict: NOT STABLE" in proc.stdout
+    # the main job's schedule bounds every step by that iteration's stiffest row
+    proc = cli(["check"], tmp_path)
+    assert proc.returncode == 0, describe(proc)
+    assert "Verdict: STABLE by construction" in proc.stdout and 'schedule = "fire-al"' in proc.stdout
     for args, word in ((["check", "--set", "method.alpha=-1"], "method.alpha"),
                        (["check", "no-such-scene"], "unknown scene"),
                        (["check", "--set", "nosuch=1"], "nosuch")):

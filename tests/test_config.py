@@ -11,9 +11,14 @@ def test_builtin_scenes():
     assert {"default", "paper-3d", "two-spheres"} <= set(config.builtin_names())
     d = config.load()
     assert d.name == "default" and d.dim == 2 and d.n == 2000
+    # the main job: the schedule that needs no parameters, and the certified stop
     m = d.method
-    assert (m.name, m.form, m.alpha, m.beta, m.gamma, m.c) == ("daha", "S", 7.8e-3, 2.8e3, 1.6e-2, 2.0)
-    assert d.stop.eps == 1e-5
+    assert (m.name, m.form, m.schedule, m.alpha, m.beta, m.gamma, m.c) == ("daha", "S", "fire-al", None, None, None, None)
+    assert d.stop.rule == "certified" and d.init.sigma == "auto"
+    p2 = config.load("paper-2d")
+    m = p2.method
+    assert (m.name, m.form, m.schedule, m.alpha, m.beta, m.gamma, m.c) == ("daha", "S", "fixed", 7.8e-3, 2.8e3, 1.6e-2, 2.0)
+    assert p2.stop.eps == 1e-5 and p2.stop.rule == "eps"
     p3 = config.load("paper-3d")
     assert p3.dim == 3 and p3.stop.eps == 0.0 and p3.method.gamma == 5.6e-2
     two = config.load("two-spheres")
@@ -60,7 +65,7 @@ def test_scene_file(tmp_path):
     s = config.load(str(f))
     assert s.name == "mine" and s.dim == 3 and s.n == 10
     assert s.method.gamma == pytest.approx(0.2, rel=1e-15)
-    assert s.as_dict()["stop"] == config.DEFAULTS["stop"]
+    assert s.as_dict()["stop"] == {**config.DEFAULTS["stop"], "rule": "eps"}  # a fixed scheme: (4.3)
 
 
 BAD = [
@@ -146,3 +151,29 @@ def test_starts_that_scale():
     assert np.mean(r < R / 2) == pytest.approx(0.25, abs=0.03)  # uniform in area
     part = init.positions(b, np.arange(1000, 3000, dtype=np.int64))
     assert np.array_equal(part, x[1000:3000])
+
+
+def test_schedule_follows_what_the_scene_sets(tmp_path):
+    """Defaults that work wherever a key is left out: a DAHA scene that sets none of alpha,
+    beta, gamma, c gets the fire-al schedule and the certified stop; one that sets any of them
+    gets the fixed scheme (the paper's values for the rest, gamma = sqrt(alpha beta))."""
+    f = tmp_path / "only-n.toml"
+    f.write_text("n = 500\n")
+    s = config.load(str(f))
+    assert s.method.schedule == "fire-al" and s.stop.rule == "certified"
+    assert (s.method.alpha, s.method.beta, s.method.gamma, s.method.c) == (None, None, None, None)
+    assert config.from_dict(s.as_dict()) == s
+    s = config.load(str(f), ["method.alpha=0.01"])
+    assert s.method.schedule == "fixed" and s.stop.rule == "eps"
+    assert (s.method.beta, s.method.c) == (2.8e3, 2.0)
+    assert s.method.gamma == pytest.approx(math.sqrt(0.01 * 2.8e3), rel=1e-15)
+    assert config.load(None, ["method.name=nap"]).method.schedule == "fixed"
+    # the fixed scheme with nothing set: the paper's whole set, not gamma = sqrt(7.8e-3 2.8e3)
+    m = config.load(None, ["method.schedule=fixed"]).method
+    assert (m.alpha, m.beta, m.gamma, m.c) == (7.8e-3, 2.8e3, 1.6e-2, 2.0)
+    assert config.load(None, ["stop.rule=eps"]).stop.rule == "eps"  # an explicit rule stays
+    for over, key in ((["method.schedule=fire-al", "method.c=3"], "method.c"),
+                      (["method.schedule=fire-al", "method.name=aha"], "method.schedule"),
+                      (["method.schedule=adaptive"], "method.schedule")):
+        with pytest.raises(config.SceneError, match=key):
+            config.load(None, over)

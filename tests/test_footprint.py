@@ -12,12 +12,13 @@ from conftest import REPO, describe, mpi_env
 
 PROBE = r"""
 import sys
-from mpipack import cli, kernels, neighbors
-rc = cli.main(["run", "--quiet", "--out", sys.argv[1], "--set", "stop.eps=0"] + sys.argv[2:])
+from mpipack import cli, kernels, kernels_fire, neighbors
+rc = cli.main(["run", "--quiet", "--out", sys.argv[1], "--set", "stop.rule=eps", "--set", "stop.eps=0"]
+              + sys.argv[2:])
 assert rc == 0, rc
 heavy = sorted(m for m in ("h5py", "matplotlib", "meshio", "scipy") if m in sys.modules)
 compiled = []
-for prefix, module in (("", kernels), ("nb:", neighbors)):
+for prefix, module in (("", kernels), ("fire:", kernels_fire), ("nb:", neighbors)):
     for name in dir(module):
         if getattr(getattr(module, name), "signatures", None):  # a numba dispatcher, called
             compiled.append(prefix + name)
@@ -46,9 +47,13 @@ def test_plain_run_imports_no_output_libraries(tmp_path):
 
 
 @pytest.mark.parametrize("sets,want,unwanted", [
-    (["dim=3", "method.form=NS", "n=60"], {"step_ns3", "metrics_ns", "nb:_build_rows_3"},
+    (["dim=3", "method.form=NS", "n=60", "method.schedule=fixed"], {"step_ns3", "metrics_ns", "nb:_build_rows_3"},
      {"step_s1", "step_s2", "step_s3", "step_ns1", "step_ns2", "metrics_s", "nap_s", "nap_ns",
-      "nav_s", "nav_ns", "nb:_build_rows_1", "nb:_build_rows_2"}),
+      "nav_s", "nav_ns", "nb:_build_rows_1", "nb:_build_rows_2", "fire:fire_ns3"}),
+    # the default schedule: its own kernel, and not DAHA's fixed-parameter one
+    (["dim=3", "method.form=NS", "n=60"], {"fire:fire_ns3", "metrics_ns", "nb:_build_rows_3"},
+     {"step_s3", "step_ns3", "fire:fire_s3", "fire:fire_ns2", "fire:fire_s2", "metrics_s",
+      "nb:_build_rows_2"}),
     (["method.name=nap", "method.form=S", "n=40", "method.alpha=0.1", "method.beta=0.1"],
      {"nap_s", "metrics_s", "nb:_build_rows_2"},
      {"step_s1", "step_s2", "step_s3", "step_ns1", "step_ns2", "step_ns3", "metrics_ns", "nap_ns",
@@ -71,7 +76,7 @@ def test_one_rank_never_exchanges_ghosts(monkeypatch):
 
     for verb in ("exchange", "borders", "forward", "_send_copies"):
         monkeypatch.setattr(comm_mod, verb, forbidden)
-    scene = config.load(None, ["n=300", "stop.eps=0", "stop.max_iter=200"])
+    scene = config.load("paper-2d", ["n=300", "stop.eps=0", "stop.max_iter=200"])
     s, res = solver.run(scene, comm_mod.Comm())
     assert res["rebuilds"] > 1 and res["iterations"] == 200
 
@@ -79,7 +84,7 @@ def test_one_rank_never_exchanges_ghosts(monkeypatch):
 def test_metrics_pass_runs_only_at_the_end():
     from mpipack import config, solver
     from mpipack.comm import Comm
-    scene = config.load(None, ["n=100", "stop.eps=0", "stop.max_iter=100"])
+    scene = config.load("paper-2d", ["n=100", "stop.eps=0", "stop.max_iter=100"])
     s = solver.Solver(scene, Comm())
     s.initialise()
     calls = []
@@ -103,7 +108,7 @@ def test_no_other_module_iterates_the_solver():
 
 def test_profile_phases_cover_the_loop(run_mpipack):
     for P in (1, 2):
-        proc, summary, _ = run_mpipack(P, None, ["n=500", "stop.eps=0", "stop.max_iter=400"],
+        proc, summary, _ = run_mpipack(P, "paper-2d", ["n=500", "stop.eps=0", "stop.max_iter=400"],
                                        extra=["--profile"])
         assert proc.returncode == 0, describe(proc)
         prof = summary["profile"]

@@ -18,6 +18,7 @@ FIXED = ["stop.rule=eps", "stop.eps=0"]
 CASES = {
     # expanding Gaussian start: migrations, rebuilds, far partners on several ranks
     "daha": ["n=300"] + FIXED,
+    "fire": ["n=300", "method.schedule=\"fire-al\""] + FIXED,
     "nap": ["n=60", "method.name=nap", "method.form=NS", "method.alpha=0.1", "method.beta=0.16",
             "method.l_inner=20"] + FIXED,
 }
@@ -30,6 +31,7 @@ def run_cli(P, workdir, sets, extra=(), timeout=300):
 
 @pytest.mark.parametrize("case,total,split,ranks", [
     ("daha", 600, 250, (1, 3)), ("daha", 600, 300, (3, 2)), ("nap", 40, 15, (1, 3)), ("nap", 40, 20, (3, 2)),
+    ("fire", 900, 350, (1, 3)), ("fire", 900, 600, (3, 2)),
 ])
 def test_restart_on_other_rank_counts_is_bitwise(tmp_path, case, total, split, ranks):
     sets = CASES[case]
@@ -110,7 +112,7 @@ def test_walltime_checkpoints_before_the_limit(tmp_path):
 
 
 def test_numerical_trouble_keeps_the_last_good_state(tmp_path):
-    p, s, _ = run_cli(1, tmp_path, ["n=500", "method.beta=1e15", "stop.max_iter=2000"])
+    p, s, _ = run_cli(1, tmp_path, ["n=500", "init.sigma=1.0", "method.beta=1e15", "method.gamma=1.6e-2", "stop.max_iter=2000"])
     assert p.returncode == 3, describe(p)
     assert s["exit_code"] == 3 and "diverges" in s["error"]
     ck = tmp_path / "out" / "checkpoint.h5"

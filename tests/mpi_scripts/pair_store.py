@@ -128,7 +128,7 @@ def advance(s, n):
 
 
 def migrate(comm, out):
-    scene = config.load(None, ["n=300", "stop.eps=0", "stop.max_iter=1000"])
+    scene = config.load("paper-2d", ["n=300", "stop.eps=0", "stop.max_iter=1000"])
     s = Solver(scene, comm)
     s.initialise()
     advance(s, 500)
@@ -178,7 +178,7 @@ def box_distance(p, lo, hi):
 
 
 def far(comm, out):
-    scene = config.load(None, ["n=300", "stop.eps=0", "stop.max_iter=1000"])
+    scene = config.load("paper-2d", ["n=300", "stop.eps=0", "stop.max_iter=1000"])
     s = Solver(scene, comm)
     s.initialise()
     advance(s, 500)

@@ -1,0 +1,210 @@
+"""Numba kernel of the "fire-al" schedule (``schedule``): one pass that does DAHA's gamma form
+or an augmented-Lagrangian step with FIRE momentum. Serial array code: never imports MPI.
+
+Notation as in ``kernels``: phi_ij (S: d_ij^2 - r^2, NS: d_ij - r), grad_i phi_ij, and
+|grad phi|^2 = 4 r^2 (S) or 1 (NS), |Hess phi| = 2 (S) or 1/r (NS). For every row entry:
+
+    dual      lam   = max(0, lam + beta wd phi(X^n))   wd = max(lam, lam_floor) (weighted_dual)
+                                                       or 1; skipped when not update_lambda
+    weight    w     = max(lam, lam_floor)              (lam_floor = 0: the paper's lambda)
+    force     clip:     m = max(0, a3 lam + a4 w phi)           (= a3 max(0, lam + rho phi),
+                                                                rho = a4 w / a3: the trial
+                                                                multiplier of the augmented
+                                                                Lagrangian, penalty rho)
+              not clip: m = a3 lam + a4 w phi if lam > 0 else 0  (DAHA (2.10a), gamma form)
+    per particle
+              G_i = -(a3 (X_i - Xbar) + sum_j m grad_i phi_ij)
+              D_i = (a1 - 1) X_i^n + a2 X_i^{n-1} + G_i,   |D_i| <= vmax (if vmax > 0)
+              X_i^{n+1} = X_i^n + D_i
+
+With a1 = 2/(1+c/2), a2 = -(1-c/2)/(1+c/2), a3 = alpha^2/(1+c/2), a4 = gamma^2/(1+c/2), no
+floor, no clip and vmax = 0 this is DAHA (2.10) exactly (up to rounding). FIRE in displacement
+form sets a1 = 1 + a, a2 = -a (velocity mixing) and a3 = b (step times step).
+At a KKT point phi lam = 0 and phi <= 0, so m = a3 lam, G = -a3 grad L = 0 and D = 0 whatever
+the floor, the clip and the cap are: the fixed points are the KKT points.
+
+Reduced figures (block "step" of the exact sums, block "step" of the maxima):
+    exact   sum X^{n+1} (b rows), sum |X^{n+1}-X^n|^2, sum |X^n|^2, power sum G.V (V = X^n -
+            X^{n-1}), sum |G|^2
+    maxima  max |D_i|^2, max overlap (d_ij - r)/d_ij at X^n,
+            T = max_i sum_{lam>0 or phi>0} |grad phi|^2 (the dual gain of a row),
+            K = max_i a3 + 2 sum_{m != 0} (a4 w |grad phi|^2 + |m| |Hess phi|) (Gershgorin row)
+"""
+
+import numpy as np
+from numba import njit
+
+from . import exactsum
+from .kernels import NONSMOOTH, SMOOTH
+
+# exact rows after the b rows of sum X^{n+1}
+ACC_DX2, ACC_XX2, ACC_POWER, ACC_FORCE2 = 0, 1, 2, 3
+N_ACC = 4
+# maxima
+MAX_STEP2, MAX_OVERLAP, MAX_GAIN, MAX_ROW = 0, 1, 2, 3
+N_MAX = 4
+
+
+@njit(cache=True, inline="always")
+def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda,
+                  xbar, a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual, vmax, update_lambda,
+                  acc, maxima):
+    fbuf = exactsum.staging(acc)
+    xb = np.zeros(3)
+    for k in range(dim):
+        xb[k] = xbar[k]
+    xi = np.zeros(3)
+    f = np.zeros(3)
+    dv = np.zeros(3)
+    max_step2 = 0.0
+    min_ratio2 = 1.0
+    max_gain = 0.0
+    max_row = 0.0
+    n_active = 0
+    for i in range(n_local):
+        for k in range(dim):
+            xi[k] = x[i, k]
+            f[k] = 0.0
+        di = diam[i]
+        gain = 0.0
+        row = 0.0
+        for e in range(pair_offsets[i], pair_offsets[i + 1]):
+            j = pair_j[e]
+            r2 = 0.0
+            for k in range(dim):
+                dv[k] = xi[k] - x[j, k]
+                r2 += dv[k] * dv[k]
+            dij = 0.5 * (di + diam[j])
+            r = 0.0
+            if form == SMOOTH:
+                phi = dij * dij - r2
+                g2 = 4.0 * r2
+                hess = 2.0
+            else:
+                r = np.sqrt(r2)
+                phi = dij - r
+                g2 = 1.0
+                hess = 1.0 / r if r > 0.0 else 0.0
+            lam = pair_lambda[e]
+            if update_lambda:
+                wd = 1.0
+                if weighted_dual:
+                    wd = lam if lam > lam_floor else lam_floor
+                lam = lam + beta * wd * phi
+                if lam < 0.0:
+                    lam = 0.0
+                pair_lambda[e] = lam
+            if phi > 0.0:
+                if r2 < min_ratio2 * (dij * dij):
+                    min_ratio2 = r2 / (dij * dij)
+            if lam > 0.0 or phi > 0.0:
+                gain += g2
+            w = lam if lam > lam_floor else lam_floor
+            if clip:
+                m = a3 * lam + a4 * w * phi
+                if m < 0.0:
+                    m = 0.0
+            elif lam > 0.0:
+                m = a3 * lam + a4 * w * phi
+            else:
+                m = 0.0
+            if lam > 0.0:
+                n_active += 1
+            if m != 0.0:
+                row += a4 * w * g2 + abs(m) * hess
+                if form == SMOOTH:
+                    g = 2.0 * m
+                    for k in range(dim):
+                        f[k] -= g * dv[k]
+                elif r > 0.0:
+                    g = m / r  # coincident centres have no direction
+                    for k in range(dim):
+                        f[k] -= g * dv[k]
+        row = a3 + 2.0 * row
+        if gain > max_gain:
+            max_gain = gain
+        if row > max_row:
+            max_row = row
+        dx2 = 0.0
+        xx2 = 0.0
+        power = 0.0
+        force2 = 0.0
+        for k in range(dim):
+            gk = -(a3 * (xi[k] - xb[k]) + f[k])
+            dk = (a1 - 1.0) * xi[k] + a2 * x_prev[i, k] + gk
+            dv[k] = dk
+            dx2 += dk * dk
+            xx2 += xi[k] * xi[k]
+            power += gk * (xi[k] - x_prev[i, k])
+            force2 += gk * gk
+        if vmax > 0.0 and dx2 > vmax * vmax:
+            scale = vmax / np.sqrt(dx2)
+            for k in range(dim):
+                dv[k] *= scale
+            dx2 = vmax * vmax
+        for k in range(dim):
+            xn = xi[k] + dv[k]
+            x_new[i, k] = xn
+            exactsum.add(fbuf, acc, k, xn)
+        exactsum.add(fbuf, acc, dim + ACC_DX2, dx2)
+        exactsum.add(fbuf, acc, dim + ACC_XX2, xx2)
+        exactsum.add(fbuf, acc, dim + ACC_POWER, power)
+        exactsum.add(fbuf, acc, dim + ACC_FORCE2, force2)
+        if dx2 > max_step2 or dx2 != dx2:
+            max_step2 = dx2
+    exactsum.flush(fbuf, acc)
+    maxima[MAX_STEP2] = max_step2
+    maxima[MAX_OVERLAP] = 1.0 - np.sqrt(min_ratio2)
+    maxima[MAX_GAIN] = max_gain
+    maxima[MAX_ROW] = max_row
+    return n_active
+
+
+_DOC = """One pass of the fire-al step for one form and dimension; see the module docstring.
+
+    Arguments: (x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda, xbar,
+    a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual, vmax, update_lambda, acc, maxima).
+    Shapes as ``kernels.multipliers_and_step``; acc int64 (b+N_ACC, exactsum.NBINS+1), added to;
+    maxima float64 (N_MAX,), overwritten. Returns the number of row entries with lambda > 0.
+    """
+
+
+@njit(cache=True)
+def fire_s1(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx):
+    return _fire_al_step(SMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx)
+
+
+@njit(cache=True)
+def fire_s2(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx):
+    return _fire_al_step(SMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx)
+
+
+@njit(cache=True)
+def fire_s3(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx):
+    return _fire_al_step(SMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx)
+
+
+@njit(cache=True)
+def fire_ns1(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx):
+    return _fire_al_step(NONSMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx)
+
+
+@njit(cache=True)
+def fire_ns2(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx):
+    return _fire_al_step(NONSMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx)
+
+
+@njit(cache=True)
+def fire_ns3(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx):
+    return _fire_al_step(NONSMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx)
+
+
+_STEPS = {("S", 1): fire_s1, ("S", 2): fire_s2, ("S", 3): fire_s3,
+          ("NS", 1): fire_ns1, ("NS", 2): fire_ns2, ("NS", 3): fire_ns3}
+for _f in _STEPS.values():
+    _f.__doc__ = _DOC
+
+
+def fire_al_step(form, dim):
+    """The compiled fire-al kernel for a constraint form ('S' or 'NS') and dimension (1-3)."""
+    return _STEPS[(form, dim)]

@@ -1,0 +1,165 @@
+"""The "fire-al" schedule (``method.schedule = "fire-al"``): parameters that need no tuning,
+set every iteration from the figures of the previous one. No MPI, no arrays: every input is a
+reduced number, so every rank takes the same decisions (bitwise rank-count independence).
+
+Why (docs/convergence.md has the measurements): with fixed (alpha, beta, gamma, c) DAHA is
+stable only while alpha^2 Hess L + gamma^2 J^T Lambda J has its largest eigenvalue below 4;
+the multipliers grow like the pressure, ~R^2 ~ N^(2/b), so any fixed set leaves the stability
+region as N grows, and momentum (c < 2) with the lambda-weighted gamma term makes weakly loaded
+contacts chatter. The schedule therefore has two phases.
+
+Law (from N, b, the mean diameter d and the form; a uniform ball of packing fraction phi_p =
+1, 0.85, 0.64 in 1D, 2D, 3D, about b N contacts, and the virial identity of a KKT point,
+S: sum lambda d^2 = W, NS: sum lambda d = 2W):
+
+    R = d/2 (N/phi_p)^(1/b),  W_eq = N b R^2 / (2(b+2)),
+    lam_bar = W_eq / (b N d^2) (S)  or  2 W_eq / (b N d) (NS),  g2 = 4 d^2 (S) or 1 (NS)
+
+1. Explosion (only for a start whose first max overlap exceeds 0.5 d): paper DAHA with c = 2,
+   gamma = alpha = sqrt(2 theta / S_law), S_law = kappa g2 2b lam_bar (the CFL of the gamma
+   term at the law's row stiffness), beta = q_e / (a3 T) with T the reduced largest dual gain
+   of a row; until the max overlap is below 0.1 d. Then lambda := 0 and X^{n-1} := X^n.
+
+2. FIRE on the augmented Lagrangian L_rho (``kernels_fire``, clip form) with per-pair penalty
+   rho = c_b max(lambda, lam_fl), lam_fl = f lam_bar, a continuous dual step
+   lambda <- max(0, lambda + omega rho phi) every iteration, and a multiplier (ALM) step
+   lambda <- max(0, lambda + rho phi) (one pass, penalty off) when the inner residual
+   r_in = ||grad L_rho|| / ||grad W|| <= eta (eta from 0.3, halved at each ALM step, floor 0.01)
+   and at least 20 iterations since the last. FIRE (Bitzek et al. 2006) in displacement form:
+       X^{n+1} - X^n = a (X^n - X^{n-1}) + b G,    G = -grad L_rho,   |step_i| <= vmax d
+       a = (1 - mix) dt / dt_prev,   b = (1 - mix) dt^2 + mix dt^2 |V| / (dt |G|)
+   power G.V < 0: X^{n-1} := X^n, dt /= 2, mix = 0.1; after 5 positive iterations
+   dt = min(1.1 dt, dt_max), mix *= 0.99; dt_max = sqrt(1 / k_rel), k_rel = K / b with K the
+   reduced largest Gershgorin row of the step (so dt_max tracks the stiffest contact).
+
+Fixed points: at a KKT point the clip gives the force multiplier lambda, grad L_rho = grad L =
+0, both dual steps leave lambda unchanged and every step is zero: the fixed points are those of
+the paper (Proposition 2.4). The certificate uses the stored multipliers.
+"""
+
+import math
+
+# explosion
+THETA, KAPPA, Q_EXPLODE, OV_START, OV_END = 0.3, 8.0, 100.0, 0.5, 0.1
+# augmented Lagrangian and FIRE
+C_B, FLOOR, OMEGA, VMAX = 4.0, 3.0, 0.01, 0.02
+N_DELAY, F_INC, F_DEC, MIX0, F_MIX, DT0_FRAC = 5, 1.1, 0.5, 0.1, 0.99, 0.1
+ETA0, ETA_F, ETA_MIN, MIN_INNER = 0.3, 0.5, 0.01, 20
+PACKING_FRACTION = {1: 1.0, 2: 0.85, 3: 0.64}
+
+
+def packing_law(n, dim, d, form):
+    """The law's radius, W at equilibrium and mean multiplier (see the module docstring)."""
+    radius = 0.5 * d * (n / PACKING_FRACTION[dim]) ** (1.0 / dim)
+    w_eq = n * dim / (2.0 * (dim + 2)) * radius * radius
+    contacts = max(1.0, dim * n)
+    lam_bar = w_eq / (contacts * d * d) if form == "S" else 2.0 * w_eq / (contacts * d)
+    return {"radius": radius, "W": w_eq, "lam_bar": lam_bar, "g2": 4.0 * d * d if form == "S" else 1.0}
+
+
+class FireAL:
+    """The schedule's state and decisions. Per iteration the solver calls ``coefficients()``
+    before the kernel pass and ``observe(fig)`` with the reduced figures after it; ``pending``
+    says what to do to the state before the next pass ("reset_lambda", "restart")."""
+
+    def __init__(self, n, dim, d, form):
+        law = packing_law(n, dim, d, form)
+        self.d, self.dim = d, dim
+        self.lam_floor = FLOOR * law["lam_bar"]
+        s_law = KAPPA * law["g2"] * 2 * dim * law["lam_bar"]
+        self.gamma_explode = math.sqrt(2.0 * THETA / s_law)
+        k_rel = 1.0 + 2.0 * (4 * dim) * C_B * self.lam_floor * law["g2"]
+        dt_max = math.sqrt(1.0 / k_rel)
+        self.s = {
+            "phase": "start",  # start -> explode -> fire, or start -> fire
+            "gain": law["g2"] * 2 * dim,  # T, the largest dual gain of a row (explosion's beta)
+            "switch_iteration": 0,
+            "pending": [],
+            "dt": DT0_FRAC * dt_max, "dt_prev": DT0_FRAC * dt_max, "dt_max": dt_max,
+            "mix": MIX0, "n_positive": 0, "speed_ratio": 0.0, "b": (DT0_FRAC * dt_max) ** 2,
+            "eta": ETA0, "since_dual": 0, "dual_now": False, "inner_residual": math.inf,
+            "restarts": 0, "dual_steps": 0,
+        }
+
+    @property
+    def phase(self):
+        return self.s["phase"]
+
+    # ---- after an iteration ------------------------------------------------------------------
+    def observe(self, fig):
+        """Take the reduced figures of the iteration just done (kernel figures: max_gain,
+        max_row, power, force2, change2, W, max_overlap)."""
+        s = self.s
+        if s["phase"] != "fire":
+            s["gain"] = max(fig["max_gain"], 1.0)
+            if s["phase"] == "start":
+                s["phase"] = "explode" if fig["max_overlap"] > OV_START else "fire"
+            elif fig["max_overlap"] < OV_END:
+                s["phase"] = "fire"
+            if s["phase"] == "fire":
+                s["switch_iteration"] = fig["iteration"]
+                s["pending"] = ["reset_lambda", "restart"]
+            return
+        b_prev = s["b"]
+        k_rel = max(fig["max_row"] / b_prev, 1.0)
+        s["dt_max"] = math.sqrt(1.0 / k_rel)
+        grad = math.sqrt(fig["force2"]) / b_prev  # ||grad L_rho||
+        grad_w = math.sqrt(2.0 * fig["W"])
+        was_dual = s["dual_now"]
+        s["inner_residual"] = grad / grad_w if grad_w > 0 else math.inf
+        s["speed_ratio"] = math.sqrt(fig["change2"]) / (s["dt"] * grad) if grad > 0 else 0.0
+        s["since_dual"] += 1
+        s["dual_now"] = False
+        if fig["power"] < 0 and not was_dual:
+            s["pending"] = ["restart"]
+            s["restarts"] += 1
+            s["dt"] *= F_DEC
+            s["mix"] = MIX0
+            s["n_positive"] = 0
+        else:
+            s["n_positive"] += 1
+            if s["n_positive"] > N_DELAY:
+                s["dt"] = min(s["dt"] * F_INC, s["dt_max"])
+                s["mix"] *= F_MIX
+        s["dt"] = min(s["dt"], s["dt_max"])
+        if not was_dual and s["since_dual"] >= MIN_INNER and s["inner_residual"] <= s["eta"]:
+            s["dual_now"] = True
+            s["dual_steps"] += 1
+            s["since_dual"] = 0
+            s["eta"] = max(ETA_MIN, s["eta"] * ETA_F)
+
+    # ---- before an iteration -----------------------------------------------------------------
+    def take_pending(self):
+        """The state changes due before the next pass (and forget them)."""
+        todo, self.s["pending"] = self.s["pending"], []
+        return todo
+
+    def coefficients(self):
+        """(a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual, vmax) of the next pass."""
+        s = self.s
+        if s["phase"] != "fire":
+            a3 = 0.5 * self.gamma_explode ** 2  # DAHA, c = 2, alpha = gamma
+            q = Q_EXPLODE if s["phase"] == "explode" else 0.5
+            return 1.0, 0.0, a3, a3, q / (a3 * s["gain"]), 0.0, False, False, 0.0
+        dt, mix = s["dt"], s["mix"]
+        a = (1.0 - mix) * dt / s["dt_prev"]
+        b = (1.0 - mix) * dt * dt + mix * dt * dt * s["speed_ratio"]
+        s["dt_prev"], s["b"] = dt, b
+        if s["dual_now"]:  # the multiplier step: lambda + rho phi, penalty off
+            a4, beta = 0.0, C_B
+        else:
+            a4, beta = b * C_B, OMEGA * C_B
+        return 1.0 + a, -a, b, a4, beta, self.lam_floor, True, True, VMAX * self.d
+
+    # ---- checkpoint ----------------------------------------------------------------------------
+    def save(self):
+        return {k: (list(v) if isinstance(v, list) else v) for k, v in self.s.items()}
+
+    def restore(self, saved):
+        self.s.update(saved)
+        self.s["pending"] = list(saved.get("pending", []))
+
+    def summary(self):
+        s = self.s
+        return {"phase": s["phase"], "switch_iteration": s["switch_iteration"],
+                "restarts": s["restarts"], "dual_steps": s["dual_steps"]}
