@@ -90,9 +90,12 @@ class Certifier:
         w_change = self.w_change(it, fig["W"])
         if not (fig["max_overlap"] <= self.stop.overlap and w_change <= self.stop.w_rtol):
             return False
+        # all three criteria of one configuration: the current X^{n+1}, its W and its iteration
+        # (the certificate at the end of the run is of that same state)
         m, _, _ = measures.measure(solver)
-        self.last = {"iteration": it,
-                     "criteria": self.criteria(m["max_overlap"], m["kkt_residual"], w_change)}
+        now = fig["iteration"]
+        self.last = {"iteration": now, "criteria": self.criteria(
+            m["max_overlap"], m["kkt_residual"], self.w_change(now, m["W"]))}
         return all(c["ok"] for c in self.last["criteria"].values())
 
     def final(self, iteration, final_fig, fired):

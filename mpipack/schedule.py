@@ -45,6 +45,7 @@ THETA, KAPPA, Q_EXPLODE, OV_START, OV_END = 0.3, 8.0, 100.0, 0.5, 0.1
 C_B, FLOOR, OMEGA, VMAX = 4.0, 3.0, 0.01, 0.02
 N_DELAY, F_INC, F_DEC, MIX0, F_MIX, DT0_FRAC = 5, 1.1, 0.5, 0.1, 0.99, 0.1
 ETA0, ETA_F, ETA_MIN, MIN_INNER = 0.3, 0.5, 0.01, 20
+MAX_INNER = 1000  # a multiplier step after this many iterations without one (0: never forced)
 PACKING_FRACTION = {1: 1.0, 2: 0.85, 3: 0.64}
 
 
@@ -122,7 +123,8 @@ class FireAL:
                 s["dt"] = min(s["dt"] * F_INC, s["dt_max"])
                 s["mix"] *= F_MIX
         s["dt"] = min(s["dt"], s["dt_max"])
-        if not was_dual and s["since_dual"] >= MIN_INNER and s["inner_residual"] <= s["eta"]:
+        stalled = MAX_INNER > 0 and s["dual_steps"] >= 1 and s["since_dual"] >= MAX_INNER
+        if not was_dual and s["since_dual"] >= MIN_INNER and (s["inner_residual"] <= s["eta"] or stalled):
             s["dual_now"] = True
             s["dual_steps"] += 1
             s["since_dual"] = 0

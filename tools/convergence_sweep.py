@@ -47,7 +47,8 @@ def run_one(n, seed, args):
     cert = s.get("certificate", {})
     sched = s.get("schedule") or {}
     return {"n": n, "dim": args.dim, "seed": seed, "ranks": args.ranks, "exit": proc.returncode,
-            "converged": s.get("converged"), "iterations": s.get("iterations"),
+            "converged": s.get("converged"), "stop_reason": s.get("stop_reason"),
+            "iterations": s.get("iterations"),
             "seconds": round(s.get("wall_seconds", wall), 2),
             "explosion_iterations": sched.get("switch_iteration"),
             "W_over_N2": s["W"] / n ** 2 if "W" in s else None,
