@@ -18,7 +18,8 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
 1. Explosion (only for a start whose first max overlap exceeds 0.5 d): paper DAHA with c = 2,
    gamma = alpha = sqrt(2 theta / S_law), S_law = kappa g2 2b lam_bar (the CFL of the gamma
    term at the law's row stiffness), beta = q_e / (a3 T) with T the reduced largest dual gain
-   of a row; until the max overlap is below 0.1 d. Then lambda := 0 and X^{n-1} := X^n.
+   of a row; until the max overlap is below 0.1 d or W exceeds 10 W_eq (an explosion that
+   overshoots: in 1D it would fly to 1000 W_eq). Then lambda := 0 and X^{n-1} := X^n.
 
 2. FIRE on the augmented Lagrangian L_rho (``kernels_fire``, clip form) with per-pair penalty
    rho = c_b max(lambda, lam_fl), lam_fl = f lam_bar, a continuous dual step
@@ -41,6 +42,8 @@ import math
 
 # explosion
 THETA, KAPPA, Q_EXPLODE, OV_START, OV_END = 0.3, 8.0, 100.0, 0.5, 0.1
+EXPLODE_CAP = 0.25  # no sphere moves more than this fraction of the law's radius per iteration
+W_SWITCH = 10.0  # ... or once W exceeds this multiple of the law's W (an overshooting explosion)
 # augmented Lagrangian and FIRE
 C_B, FLOOR, OMEGA, VMAX = 4.0, 3.0, 0.01, 0.02
 N_DELAY, F_INC, F_DEC, MIX0, F_MIX, DT0_FRAC = 5, 1.1, 0.5, 0.1, 0.99, 0.1
@@ -65,7 +68,8 @@ class FireAL:
 
     def __init__(self, n, dim, d, form):
         law = packing_law(n, dim, d, form)
-        self.d, self.dim = d, dim
+        self.d, self.dim, self.w_eq = d, dim, law["W"]
+        self.explode_cap = EXPLODE_CAP * law["radius"]
         self.lam_floor = FLOOR * law["lam_bar"]
         s_law = KAPPA * law["g2"] * 2 * dim * law["lam_bar"]
         self.gamma_explode = math.sqrt(2.0 * THETA / s_law)
@@ -95,7 +99,7 @@ class FireAL:
             s["gain"] = max(fig["max_gain"], 1.0)
             if s["phase"] == "start":
                 s["phase"] = "explode" if fig["max_overlap"] > OV_START else "fire"
-            elif fig["max_overlap"] < OV_END:
+            elif fig["max_overlap"] < OV_END or fig["W"] > W_SWITCH * self.w_eq:
                 s["phase"] = "fire"
             if s["phase"] == "fire":
                 s["switch_iteration"] = fig["iteration"]
@@ -142,7 +146,7 @@ class FireAL:
         if s["phase"] != "fire":
             a3 = 0.5 * self.gamma_explode ** 2  # DAHA, c = 2, alpha = gamma
             q = Q_EXPLODE if s["phase"] == "explode" else 0.5
-            return 1.0, 0.0, a3, a3, q / (a3 * s["gain"]), 0.0, False, False, 0.0
+            return 1.0, 0.0, a3, a3, q / (a3 * s["gain"]), 0.0, False, False, self.explode_cap
         dt, mix = s["dt"], s["mix"]
         a = (1.0 - mix) * dt / s["dt_prev"]
         b = (1.0 - mix) * dt * dt + mix * dt * dt * s["speed_ratio"]
