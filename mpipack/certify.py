@@ -92,7 +92,7 @@ class Certifier:
             return False
         # all three criteria of one configuration: the current X^{n+1}, its W and its iteration
         # (the certificate at the end of the run is of that same state)
-        m, _, _ = measures.measure(solver)
+        m, _, _ = measures.measure(solver, overlap_a=False)
         now = fig["iteration"]
         self.last = {"iteration": now, "criteria": self.criteria(
             m["max_overlap"], m["kkt_residual"], self.w_change(now, m["W"]))}

@@ -378,7 +378,7 @@ N_MET_MAX = 3
 
 @njit(cache=True, inline="always")
 def _pair_metrics(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, xbar, beta,
-                  lambda_mode, lam_scale, acc, maxima, pressure, contacts):
+                  lambda_mode, lam_scale, measures_a, acc, maxima, pressure, contacts):
     dim = x.shape[1]
     fbuf = exactsum.staging(acc)
     g = np.zeros(dim)
@@ -424,7 +424,8 @@ def _pair_metrics(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, xba
                         min_ratio2 = r2 / (dij * dij)
                 elif phi > max_overlap * dij:
                     max_overlap = phi / dij
-                lens += metrics.intersection(dim, np.sqrt(r2), 0.5 * diam[j], 0.5 * di)
+                if measures_a:
+                    lens += metrics.intersection(dim, np.sqrt(r2), 0.5 * diam[j], 0.5 * di)
             if lam > 0.0:
                 n_active += 1
                 mu += lam
@@ -446,7 +447,8 @@ def _pair_metrics(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, xba
         exactsum.add(fbuf, acc, MET_KKT2, kkt2)
         exactsum.add(fbuf, acc, MET_GW2, gw2)
         exactsum.add(fbuf, acc, MET_OVERLAP_MEASURE, lens)
-        exactsum.add(fbuf, acc, MET_SPHERE_MEASURE, metrics.ball_volume(dim, 0.5 * di))
+        if measures_a:
+            exactsum.add(fbuf, acc, MET_SPHERE_MEASURE, metrics.ball_volume(dim, 0.5 * di))
         pressure[i] = mu
         contacts[i] = nc
     exactsum.flush(fbuf, acc)
@@ -459,18 +461,19 @@ def _pair_metrics(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, xba
 
 
 @njit(cache=True)
-def metrics_s(x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, acc, mx, pressure, contacts):
-    return _pair_metrics(SMOOTH, x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, acc, mx, pressure, contacts)
+def metrics_s(x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, area, acc, mx, pressure, contacts):
+    return _pair_metrics(SMOOTH, x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, area, acc, mx, pressure, contacts)
 
 
 @njit(cache=True)
-def metrics_ns(x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, acc, mx, pressure, contacts):
-    return _pair_metrics(NONSMOOTH, x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, acc, mx, pressure, contacts)
+def metrics_ns(x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, area, acc, mx, pressure, contacts):
+    return _pair_metrics(NONSMOOTH, x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, area, acc, mx, pressure, contacts)
 
 
 def pair_metrics(form):
     """The compiled metrics pass for a form (any dimension). Arguments: (x, n_local, diam,
-    pair_offsets, pair_j, pair_lambda, xbar, beta, lambda_mode, lam_scale, acc (4, NBINS+1), maxima
+    pair_offsets, pair_j, pair_lambda, xbar, beta, lambda_mode, lam_scale, measures_a (with the
+    overlap and sphere measures of the paper's A: the costly part, lens areas), acc (4, NBINS+1), maxima
     (N_MET_MAX,), pressure (n_local,), contacts int32 (n_local,)); returns the number of row
     entries with lambda > 0."""
     return metrics_s if form == "S" else metrics_ns

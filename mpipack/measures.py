@@ -13,8 +13,10 @@ from .reduction import Reduction
 from .state import BlockState
 
 
-def measure(s, finalize=False, empty=False):
-    """One metrics pass (collective): max overlap, KKT residual, complementarity, W.
+def measure(s, finalize=False, empty=False, overlap_a=True):
+    """One metrics pass (collective): max overlap, KKT residual, complementarity, W, and with
+    ``overlap_a`` the paper's A (lens areas of every overlapping pair: the costly part; NaN
+    without).
 
     The multipliers are those of the current X: when the state holds lambda^{n-1} (DAHA/AHA
     between iterations) the pass applies (2.10b) on the fly; it stores the result only with
@@ -37,7 +39,7 @@ def measure(s, finalize=False, empty=False):
     pressure = np.zeros(st.n_local)
     contacts = np.zeros(st.n_local, dtype=np.int32)
     n_active = s._metrics_kernel(st.x, 0 if empty else st.n_local, st.diam, st.pair_offsets, st.pair_j,
-                                 st.pair_lambda, s.xbar, s.beta, mode, s.kkt_lambda_scale,
+                                 st.pair_lambda, s.xbar, s.beta, mode, s.kkt_lambda_scale, overlap_a,
                                  red.acc("met"), red.maxima("met"), pressure, contacts)
     if mode == kernels.LAMBDA_UPDATE:
         st.lambda_fresh = True
@@ -51,7 +53,7 @@ def measure(s, finalize=False, empty=False):
         "complementarity": red.max("complementarity"),
         # the paper's A (Definition 4.1): sum_{i<j} |B_i ∩ B_j| / (N sum_i |B_i|)
         "overlap_A": (0.5 * red.value("lens") / (s.n * red.value("spheres"))
-                      if red.value("spheres") > 0 else math.nan),
+                      if overlap_a and red.value("spheres") > 0 else math.nan),
         "max_lambda": red.max("max_lambda"),
         "active_pairs": red.count("active") // 2,
         "radius_of_gyration": math.sqrt(gw2 / s.n),

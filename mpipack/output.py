@@ -33,7 +33,7 @@ def file_attrs(scene, comm):
 def snapshot_fields(solver):
     """Per-sphere fields of a snapshot, local rows (collective: a metrics pass for the
     pressure mu_i = sum_j lambda_ij and the active contacts). Returns (gid, fields, figures)."""
-    fig, pressure, contacts = measures.measure(solver)
+    fig, pressure, contacts = measures.measure(solver, overlap_a=False)
     st = solver.state
     n = st.n_local
     return st.gid[:n], {"position": st.x[:n], "diameter": st.diam[:n], "pressure": pressure,
