@@ -176,3 +176,52 @@ def scene_diameters(scene, gids):
     """Diameters of the given gids for the scene's particles block."""
     p = scene.particles
     return diameters(scene.seed, gids, float(p.diameter), float(p.d_max))
+
+
+# ---- breaking an exact symmetry ---------------------------------------------------------------
+# Spheres whose centres coincide exactly feel no force from each other: the S gradient
+# -2 (X_i - X_j) is zero and the NS direction is undefined. A start (or a state read back)
+# with such pairs is moved apart by a displacement of ``SEPARATION`` times the largest diameter
+# in a direction drawn from (seed, gid): the same on any number of ranks.
+SEPARATION = 1e-6
+_SEPARATE_STREAM = 3000
+
+
+@njit(cache=True)
+def coincident_centres(x, n_local, pair_offsets, pair_j, flags):
+    """flags[i] = True for local particles with a pair partner at exactly the same centre;
+    returns how many."""
+    count = 0
+    b = x.shape[1]
+    for i in range(n_local):
+        for e in range(pair_offsets[i], pair_offsets[i + 1]):
+            j = pair_j[e]
+            same = True
+            for k in range(b):
+                if x[i, k] != x[j, k]:
+                    same = False
+                    break
+            if same:
+                flags[i] = True
+                count += 1
+                break
+    return count
+
+
+@njit(cache=True)
+def separate(seed, gids, x, x_prev, flags, length):
+    """Move each flagged particle (and its previous position: no momentum) by ``length`` in a
+    unit direction from (seed, gid)."""
+    b = x.shape[1]
+    u = np.empty(b)
+    for i in range(flags.shape[0]):
+        if not flags[i]:
+            continue
+        norm = 0.0
+        for k in range(b):
+            u[k] = 2.0 * uniform(seed, gids[i], _SEPARATE_STREAM + k) - 1.0
+            norm += u[k] * u[k]
+        norm = np.sqrt(norm)
+        for k in range(b):
+            x[i, k] += length * u[k] / norm
+            x_prev[i, k] += length * u[k] / norm

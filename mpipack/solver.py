@@ -200,6 +200,7 @@ class Solver:
         st.set_particles(local, ghost)
         st.lambda_fresh = lam_fresh
         self.rebuild(rebalance=True, hist=hist)
+        self._break_coincidence()
         self.xbar, w0 = self._centre_of_mass()
         # natural size: the start's radius of gyration, or a packing's, whichever is larger
         r_start = math.sqrt(2.0 * max(w0, 0.0) / self.n)
@@ -212,6 +213,23 @@ class Solver:
         self._kernel_pass(st.x_prev, self.xbar, scratch, n_local=0)
         # and the metrics pass, which every run needs at its end (and hooks may ask for sooner)
         measures.measure(self, empty=True)
+
+    def _break_coincidence(self):
+        """Spheres at exactly the same centre push each other nowhere: move them apart by a
+        tiny displacement drawn from (seed, gid), collectively (``init.separate``)."""
+        st = self.state
+        flags = np.zeros(st.n_local, dtype=np.bool_)
+        found = init.coincident_centres(st.x, st.n_local, st.pair_offsets, st.pair_j, flags)
+        total = int(self.comm.allreduce(np.array([found], dtype=np.int64), op="sum")[0])
+        if total == 0:
+            return
+        before = st.x[:st.n_local].copy()
+        init.separate(self.scene.seed, st.gid[:st.n_local], st.x, st.x_prev, flags,
+                      init.SEPARATION * self.d_max)
+        if self.nested:  # the linearisation point moves with the particle
+            st.x_lin[:st.n_local] += st.x[:st.n_local] - before
+        self.counters["separated"] = total
+        self.rebuild()
 
     def _centre_of_mass(self):
         """Xbar and W = 1/2 sum |X_i - Xbar|^2 of the current positions (collective)."""

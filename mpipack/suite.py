@@ -270,8 +270,10 @@ def cases(quick):
              two + ["method.beta=1.4"], scene="two-spheres", validate=two_spheres_answer("S")),
         Case("one point S (exact)", "never a wrong packing: certified (symmetry broken) or detected",
              [], quick=True, max_iter=3000, prepare=lambda c, f, log: one_point_checkpoint(f, 50, 2, "S", log),
-             note="every centre stays at the origin (the S gradient and the NS direction vanish there): the "
-                  "solver does not break the symmetry; exit 4 at the bound, with no word on why"),
+             note="the S gradient and the NS direction vanish at coincident centres: the run moves such "
+                  "spheres apart by 1e-6 d in directions drawn from (seed, gid) before its first iteration "
+                  "(init.separate), the same on any rank count; the cloud then expands (W 0 -> 173) and, "
+                  "given 30000 iterations instead of this case's 3000, certifies (12450 iterations)"),
         Case("one point NS (exact)", "never a wrong packing: certified (symmetry broken) or detected",
              [], max_iter=3000, prepare=lambda c, f, log: one_point_checkpoint(f, 50, 2, "NS", log)),
         Case("one point S rule (4.3)", "the paper's rule: must not exit 0 with a one-point 'packing'",
