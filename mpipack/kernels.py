@@ -369,15 +369,15 @@ def nested_step(method, form):
 # them (a check in the middle of a run, which must not change the trajectory).
 
 LAMBDA_STORED, LAMBDA_UPDATE, LAMBDA_PEEK = 0, 1, 2
-# exact rows: KKT2, GW2, the overlap measure sum_{i<j} |B_i ∩ B_j| (each pair from both ends,
-# halved by the caller) and the spheres' measure sum_i |B_i|, for the paper's A (Definition 4.1)
+# exact rows: KKT2, GW2, the overlap measure sum_{i<j} |B_i ∩ B_j| (each pair once, by the owner of
+# its lower gid) and the spheres' measure sum_i |B_i|, for the paper's A (Definition 4.1)
 MET_KKT2, MET_GW2, MET_OVERLAP_MEASURE, MET_SPHERE_MEASURE = 0, 1, 2, 3
 MET_OVERLAP, MET_COMPL, MET_LAMBDA = 0, 1, 2
 N_MET_MAX = 3
 
 
 @njit(cache=True, inline="always")
-def _pair_metrics(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, xbar, beta,
+def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda, xbar, beta,
                   lambda_mode, lam_scale, measures_a, acc, maxima, pressure, contacts):
     dim = x.shape[1]
     fbuf = exactsum.staging(acc)
@@ -424,7 +424,7 @@ def _pair_metrics(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, xba
                         min_ratio2 = r2 / (dij * dij)
                 elif phi > max_overlap * dij:
                     max_overlap = phi / dij
-                if measures_a:
+                if measures_a and gid[i] < gid[j]:  # each pair once, by its lower gid's owner
                     lens += metrics.intersection(dim, np.sqrt(r2), 0.5 * diam[j], 0.5 * di)
             if lam > 0.0:
                 n_active += 1
@@ -461,18 +461,18 @@ def _pair_metrics(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, xba
 
 
 @njit(cache=True)
-def metrics_s(x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, area, acc, mx, pressure, contacts):
-    return _pair_metrics(SMOOTH, x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, area, acc, mx, pressure, contacts)
+def metrics_s(x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, area, acc, mx, pressure, contacts):
+    return _pair_metrics(SMOOTH, x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, area, acc, mx, pressure, contacts)
 
 
 @njit(cache=True)
-def metrics_ns(x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, area, acc, mx, pressure, contacts):
-    return _pair_metrics(NONSMOOTH, x, n_local, diam, po, pj, pl, xbar, beta, upd, scale, area, acc, mx, pressure, contacts)
+def metrics_ns(x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, area, acc, mx, pressure, contacts):
+    return _pair_metrics(NONSMOOTH, x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, area, acc, mx, pressure, contacts)
 
 
 def pair_metrics(form):
-    """The compiled metrics pass for a form (any dimension). Arguments: (x, n_local, diam,
-    pair_offsets, pair_j, pair_lambda, xbar, beta, lambda_mode, lam_scale, measures_a (with the
+    """The compiled metrics pass for a form (any dimension). Arguments: (x, n_local, diam, gid
+    (n_total,), pair_offsets, pair_j, pair_lambda, xbar, beta, lambda_mode, lam_scale, measures_a (with the
     overlap and sphere measures of the paper's A: the costly part, lens areas), acc (4, NBINS+1), maxima
     (N_MET_MAX,), pressure (n_local,), contacts int32 (n_local,)); returns the number of row
     entries with lambda > 0."""

@@ -38,7 +38,7 @@ def measure(s, finalize=False, empty=False, overlap_a=True):
         .add_count("active").begin()
     pressure = np.zeros(st.n_local)
     contacts = np.zeros(st.n_local, dtype=np.int32)
-    n_active = s._metrics_kernel(st.x, 0 if empty else st.n_local, st.diam, st.pair_offsets, st.pair_j,
+    n_active = s._metrics_kernel(st.x, 0 if empty else st.n_local, st.diam, st.gid, st.pair_offsets, st.pair_j,
                                  st.pair_lambda, s.xbar, s.beta, mode, s.kkt_lambda_scale, overlap_a,
                                  red.acc("met"), red.maxima("met"), pressure, contacts)
     if mode == kernels.LAMBDA_UPDATE:
@@ -52,7 +52,7 @@ def measure(s, finalize=False, empty=False, overlap_a=True):
         "kkt_residual": math.sqrt(kkt2 / gw2) if gw2 > 0 else (0.0 if kkt2 == 0 else math.inf),
         "complementarity": red.max("complementarity"),
         # the paper's A (Definition 4.1): sum_{i<j} |B_i ∩ B_j| / (N sum_i |B_i|)
-        "overlap_A": (0.5 * red.value("lens") / (s.n * red.value("spheres"))
+        "overlap_A": (red.value("lens") / (s.n * red.value("spheres"))
                       if overlap_a and red.value("spheres") > 0 else math.nan),
         "max_lambda": red.max("max_lambda"),
         "active_pairs": red.count("active") // 2,
