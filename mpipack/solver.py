@@ -13,6 +13,11 @@ One iteration of DAHA / AHA, n -> n+1 (every rank, in lock step):
     hooks       whatever is due: progress, output, metrics (``hooks``)
     stop        ||X^{n+1} - X^n|| / ||X^n|| < eps   (4.3), max_iter, or a hook's request
 
+Under the fire-al schedule (``method.schedule``, the default of DAHA scenes that set no
+parameters) the step kernel is ``kernels_fire``'s, and ``schedule.FireAL`` sets its
+coefficients before every pass from the previous iteration's reduced figures (``docs/
+convergence.md``); the loop is the same.
+
 NAP and NAV run the same step/reduce/forward cycle for each inner iteration, with the
 constraints linearised about the outer iterate X^p (``nested.outer_step``). End-of-run
 figures, the state by gid and gathers are in ``measures``.
