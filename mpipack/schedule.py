@@ -25,7 +25,7 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
    rho = c_b max(lambda, lam_fl), lam_fl = f lam_bar, a continuous dual step
    lambda <- max(0, lambda + omega rho phi) every iteration, and a multiplier (ALM) step
    lambda <- max(0, lambda + rho phi) (one pass, penalty off) when the inner residual
-   r_in = ||grad L_rho|| / ||grad W|| <= eta (eta from 0.3, halved at each ALM step, floor 0.01)
+   r_in = ||grad L_rho|| / ||grad W|| <= eta (eta from 0.3, halved at each ALM step, floor 0.003)
    and at least 20 iterations since the last. FIRE (Bitzek et al. 2006) in displacement form:
        X^{n+1} - X^n = a (X^n - X^{n-1}) + b G,    G = -grad L_rho,   |step_i| <= vmax d
        a = (1 - mix) dt / dt_prev,   b = (1 - mix) dt^2 + mix dt^2 |V| / (dt |G|)
@@ -47,7 +47,7 @@ W_SWITCH = 10.0  # ... or once W exceeds this multiple of the law's W (an oversh
 # augmented Lagrangian and FIRE
 C_B, FLOOR, OMEGA, VMAX = 4.0, 3.0, 0.01, 0.02
 N_DELAY, F_INC, F_DEC, MIX0, F_MIX, DT0_FRAC = 5, 1.1, 0.5, 0.1, 0.99, 0.1
-ETA0, ETA_F, ETA_MIN, MIN_INNER = 0.3, 0.5, 0.01, 20
+ETA0, ETA_F, ETA_MIN, MIN_INNER = 0.3, 0.5, 0.003, 20
 MAX_INNER = 1000  # a multiplier step after this many iterations without one (0: never forced)
 PACKING_FRACTION = {1: 1.0, 2: 0.85, 3: 0.64}
 

@@ -209,7 +209,7 @@ def test_default_scene_converges_on_2_ranks(run_mpipack):
     assert all(c["ok"] for c in s["certificate"].values()), s["certificate"]
     assert s["max_overlap"] <= 1e-3 and s["kkt_residual"] <= 1e-2, s
     assert s["schedule"]["phase"] == "fire" and s["schedule"]["dual_steps"] >= 1, s
-    # measured 3200-9950 iterations on seeds 0-9 (docs/convergence.md)
+    # measured 3200-9700 iterations on seeds 0-9 (docs/convergence.md)
     assert 0 < s["iterations"] < 12000, s
     # a nearly hexagonal packing: below the optimum pi / (2 sqrt 3) = 0.907, well above the
     # paper's 0.87
