@@ -66,6 +66,9 @@ class FireAL:
     before the kernel pass and ``observe(fig)`` with the reduced figures after it; ``pending``
     says what to do to the state before the next pass ("reset_lambda", "restart")."""
 
+    # coefficients of a pass that moves nothing (compiling the kernel at set-up)
+    NO_STEP = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, False, False, 0.0)
+
     def __init__(self, n, dim, d, form):
         law = packing_law(n, dim, d, form)
         self.d, self.dim, self.w_eq = d, dim, law["W"]

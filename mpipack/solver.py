@@ -214,7 +214,7 @@ class Solver:
         scratch = Reduction().add_exact("step", self._step_sums()) \
             .add_max("step", self._step_maxima()).begin()
         if self.schedule is not None:
-            self.sched_coeffs = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, False, False, 0.0)
+            self.sched_coeffs = self.schedule.NO_STEP
         self._kernel_pass(st.x_prev, self.xbar, scratch, n_local=0)
         # and the metrics pass, which every run needs at its end (and hooks may ask for sooner)
         measures.measure(self, empty=True)

@@ -136,6 +136,8 @@ def one_point_checkpoint(folder, n, dim, form, log):
 
 # ---- running -------------------------------------------------------------------------------------
 def mpi_env():
+    """os.environ plus what Open MPI needs to run as root with more ranks than cores (idle ranks
+    yield instead of busy-polling), and this checkout first on PYTHONPATH."""
     env = dict(os.environ)
     env["OMPI_ALLOW_RUN_AS_ROOT"] = "1"
     env["OMPI_ALLOW_RUN_AS_ROOT_CONFIRM"] = "1"

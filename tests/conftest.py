@@ -1,12 +1,11 @@
 """Shared helpers: run mpipack (or a test script) under ``mpirun`` with a self-contained env.
 
 The tests do not rely on the caller having sourced tools/env.sh: the environment for every
-subprocess is built here from os.environ plus what Open MPI needs to run as root and with
+subprocess is `mpipack.suite.mpi_env`: os.environ plus what Open MPI needs to run as root and with
 more ranks than cores. Every subprocess has a timeout, so a hang fails instead of blocking.
 """
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -25,16 +24,9 @@ DUMP_KEYS = ("gid", "x", "x_prev", "diam", "pairs_gid", "pairs_lambda")
 TIMEOUT = 300
 
 
-def mpi_env():
-    env = dict(os.environ)
-    env["OMPI_ALLOW_RUN_AS_ROOT"] = "1"
-    env["OMPI_ALLOW_RUN_AS_ROOT_CONFIRM"] = "1"
-    env["OMPI_MCA_rmaps_base_oversubscribe"] = "1"
-    # more ranks than cores: give the core away while waiting instead of busy-polling
-    env.setdefault("OMPI_MCA_mpi_yield_when_idle", "1")
-    env["PYTHONPATH"] = str(REPO) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    env.pop("PYTHONSTARTUP", None)
-    return env
+# the environment of every subprocess: the one `mpipack suite` builds for its runs (root,
+# oversubscription, yield when idle, this checkout first on PYTHONPATH)
+from mpipack.suite import mpi_env  # noqa: E402
 
 
 def mpirun(n, args, cwd, timeout=TIMEOUT):

@@ -2,10 +2,10 @@
 tools/convergence_sweep.py and docs/convergence.md), and a run that cannot certify says which
 criterion failed and exits 4. Every run is a real command-line run, checked from its dump."""
 
-import numpy as np
 import pytest
 
 from conftest import describe, mpipack_run
+from test_parallel import brute_force_figures
 
 CERTIFIES = {
     # N, dim, form; sigma "auto" and nothing else set: the defaults
@@ -13,15 +13,6 @@ CERTIFIES = {
     "2d-NS": ["n=100", "method.form=NS"],
     "1d-S": ["n=50", "dim=1"],
 }
-
-
-def brute_overlap(d):
-    x, diam = d["x"], d["diam"]
-    r = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(axis=2))
-    dij = 0.5 * (diam[:, None] + diam[None, :])
-    ov = (dij - r) / dij
-    np.fill_diagonal(ov, -np.inf)
-    return max(float(ov.max()), 0.0)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -35,7 +26,7 @@ def test_defaults_certify(tmp_path, case, seed):
     cert = s["certificate"]
     assert cert["overlap"]["value"] <= 1e-3 and cert["kkt"]["value"] <= 1e-2 and cert["settled"]["value"] <= 1e-4
     # the overlap, recomputed from the gathered positions
-    assert brute_overlap(d) <= 1e-3
+    assert brute_force_figures(d)[1] <= 1e-3
     assert s["schedule"]["phase"] == "fire"
 
 
