@@ -40,7 +40,7 @@ DEFAULTS = {
     "method": {"name": "daha", "form": "S", "alpha": None, "beta": None, "gamma": None, "c": None,
                "schedule": None, "l_inner": 10, "eps_inner": 1e-9, "tau": 0.1},
     "stop": {"rule": None, "eps": 1e-5, "max_iter": 100000, "max_seconds": 0.0, "overlap": 1e-3,
-             "kkt": 1e-2, "w_rtol": 1e-4, "w_window": 0.1, "check_every": 50},
+             "kkt": 1e-2, "w_rtol": 1e-4, "w_window": 0.1, "check_every": 50, "watchdog": True},
     "neighbor": {"skin": 0.3, "rebalance": 1.2, "max_pair_gib": None},
     "output": {"progress_every": 0.5, "dir": None, "metrics_every": 0, "w_optimum": None,
                "snapshots": True, "snapshot_every": 0, "checkpoint_every": 0},
@@ -158,6 +158,7 @@ class Stop:
     w_rtol: float
     w_window: float
     check_every: int
+    watchdog: bool
 
 
 @dataclass(frozen=True)
@@ -347,6 +348,8 @@ def validate(scene):
     if not 0 < _num(scene, "stop.w_window") <= 1:
         raise SceneError(f"key 'stop.w_window' is a fraction of the run, in (0, 1], got {scene['stop']['w_window']}")
     _num(scene, "stop.check_every", int)
+    if not isinstance(scene["stop"]["watchdog"], bool):
+        raise SceneError(f"key 'stop.watchdog' must be true or false, got {scene['stop']['watchdog']!r}")
     _num(scene, "neighbor.skin")
     _num(scene, "neighbor.max_pair_gib", optional=True)
     reb = _num(scene, "neighbor.rebalance")

@@ -8,7 +8,8 @@ Exit codes (the same on every rank):
        requested iterations ran (stop.eps = 0)
     1  internal error (a bug: please report it with the traceback)
     2  bad input (scene, option, checkpoint): one line naming the problem
-    3  numerical trouble: NaN, Inf or divergence; the last good state is checkpointed
+    3  numerical trouble: NaN, Inf, divergence or oscillation without progress (``watchdog``);
+       the last good state is checkpointed
     4  not converged within stop.max_iter or stop.max_seconds
     5  stopped with a checkpoint: SIGTERM, SIGUSR1, SIGINT or --walltime; continue with
        ``mpipack run --restart RUN_DIR``
@@ -285,6 +286,9 @@ def _execute(comm, args, scene, state, out, walltime):
         solver, res = solver_mod.run(scene, comm, hooks=hooks, source=state, profile=args.profile)
     except solver_mod.NumericalError as e:
         code, message, solver = EXIT_NUMERICAL, str(e), e.solver
+        summary["trouble"] = e.kind  # "non-finite", "diverged" or "stalled"
+        if solver is not None:
+            summary["iterations"] = solver.state.iteration
     except solver_mod.TooDenseError as e:
         code, message = EXIT_INPUT, str(e)
     wall = time.perf_counter() - t0

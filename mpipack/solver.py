@@ -45,12 +45,19 @@ from .certify import Certifier
 from .reduction import Reduction
 from .state import State
 from .timers import FORWARD, HOOKS, REDUCE, STEP, PhaseTimers, format_report, process_age_seconds
+from . import watchdog as watchdog_mod
+from .watchdog import Watchdog
 
 
 class NumericalError(RuntimeError):
-    """NaN, Inf or divergence in the state. ``solver`` (set by ``run``) holds the last good
-    state: positions of the last finite iteration and their multipliers."""
+    """NaN, Inf, divergence or oscillation without progress (``watchdog``). ``solver`` (set by
+    ``run``) holds the last good state: positions of the last finite iteration and their
+    multipliers. ``kind``: "non-finite", "diverged" or "stalled"."""
     solver = None
+
+    def __init__(self, message, kind="diverged"):
+        super().__init__(message)
+        self.kind = kind
 
 
 # set by a signal handler (``request_stop``), read into every reduction
@@ -175,6 +182,27 @@ class Solver:
         update = self.schedule.phase == "fire" or not st.lambda_fresh
         return self._kernel(*args, *coeffs, update, red.acc("step"), red.maxima("step"))
 
+    def advice(self):
+        """A parameter change that would help an unstable or stalled run of this method."""
+        m = self.params
+        if self.schedule is not None:
+            return ("the fire-al schedule should not do this: please report the scene and seed; "
+                    "meanwhile try another seed or method.form")
+        if m.name == "aha":
+            return 'AHA has no damping: use method.name = "daha", or lower method.beta or method.alpha'
+        if self.nested:
+            return "lower method.alpha or method.tau, or raise method.l_inner"
+        return ("`mpipack check SCENE` gives the stable range of the parameters (usually: raise method.c, "
+                "lower method.beta or method.alpha); or leave method.alpha, beta, gamma and c unset for "
+                "the fire-al schedule (docs/convergence.md)")
+
+    def max_lambda(self):
+        """max lambda_kl over all stored pairs (collective)."""
+        st = self.state
+        entries = int(st.pair_offsets[st.n_local])
+        local = float(st.pair_lambda[:entries].max()) if entries > 0 else 0.0
+        return float(self.comm.allreduce(np.array([local]), op="max")[0])
+
     # ---- set-up ----------------------------------------------------------------------------
     def initialise(self, source=None):
         """Start from the scene's initial data (source None) or from a ``BlockState`` (this
@@ -209,7 +237,8 @@ class Solver:
         self.xbar, w0 = self._centre_of_mass()
         # natural size: the start's radius of gyration, or a packing's, whichever is larger
         r_start = math.sqrt(2.0 * max(w0, 0.0) / self.n)
-        self.r_diverge = DIVERGENCE_FACTOR * max(r_start, self.d_max * self.n ** (1.0 / self.dim))
+        self.r_natural = max(r_start, self.d_max * self.n ** (1.0 / self.dim))
+        self.r_diverge = DIVERGENCE_FACTOR * self.r_natural
         # compile (or load from the cache) the step kernel now, so the loop's timing excludes it
         scratch = Reduction().add_exact("step", self._step_sums()) \
             .add_max("step", self._step_maxima()).begin()
@@ -291,7 +320,7 @@ class Solver:
         if red.overflowed() or not red.all_maxima_finite():
             raise NumericalError(
                 f"non-finite or diverging positions at iteration {st.iteration + 1} "
-                f"(NaN/Inf, or |X|^2 beyond {exactsum.RANGE:.3g}); lower alpha/beta or raise c")
+                f"(NaN/Inf, or |X|^2 beyond {exactsum.RANGE:.3g}); {self.advice()}", "non-finite")
         dx2, xx2 = red.value("dx2"), red.value("xx2")
         max_step = math.sqrt(red.max("step2"))
         fig = {
@@ -313,7 +342,7 @@ class Solver:
         if r_gyr > self.r_diverge:
             raise NumericalError(
                 f"the cloud diverges: radius of gyration {r_gyr:.3g} at iteration {st.iteration + 1}, "
-                f"{DIVERGENCE_FACTOR:g} times its natural size; lower beta, alpha or gamma, or raise c")
+                f"{DIVERGENCE_FACTOR:g} times its natural size; {self.advice()}")
         fig["imbalance"] = fig["max_local"] * self.comm.size / self.n
         self.counters["max_imbalance"] = max(self.counters["max_imbalance"], fig["imbalance"])
         fig["stop_request"] = red.max("stop_request") > 0
@@ -388,8 +417,12 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
     certifier = Certifier(stop_rule)
     if source is not None and "certifier" in source.extra:
         certifier.restore(source.extra["certifier"])  # a restart: the same stop decisions
+    watchdog = make_watchdog(solver, scene)
+    if watchdog is not None and source is not None and "watchdog" in source.extra:
+        watchdog.restore(source.extra["watchdog"])
     solver.run_state = lambda: {"certifier": certifier.save(),
-                                **({"schedule": solver.schedule.save()} if solver.schedule else {})}
+                                **({"schedule": solver.schedule.save()} if solver.schedule else {}),
+                                **({"watchdog": watchdog.save()} if watchdog else {})}
     certified_rule = stop_rule.rule == "certified"
     ctx = hooks_mod.Context(solver)
     start_iter = solver.state.iteration
@@ -427,6 +460,12 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
         if not certified_rule and eps > 0 and fig["relative_change"] < eps:
             ctx.stop_reason = "eps"
             break
+        if watchdog is not None:
+            try:
+                watch(watchdog, solver, certifier, fig)
+            except NumericalError as e:
+                e.solver = solver
+                raise
     loop_seconds = time.perf_counter() - t_loop
     timers.stop()
     final = solver.finish()
@@ -461,6 +500,40 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
         if h.at_end:
             h(ctx)
     return solver, result
+
+
+def make_watchdog(solver, scene):
+    """The run's ``Watchdog`` (None with stop.watchdog = false). Its no-progress test is for
+    the fixed-parameter schemes (the paper's methods as given), whose failure is a cycle or a
+    wander; it is off under the fire-al schedule (FIRE's restarts and the augmented
+    Lagrangian's dual steps make slow phases that its figures cannot tell from a cycle: the
+    3D N = 100 run of seed 1, which certifies after 14750 iterations, would be stopped at
+    3250) and when the scene asked for a fixed number of iterations (stop.rule "eps",
+    stop.eps = 0)."""
+    stop = scene.stop
+    if not stop.watchdog:
+        return None
+    from .schedule import packing_law
+    p = scene.particles
+    law = packing_law(solver.n, solver.dim, 0.5 * (p.diameter + p.d_max), scene.method.form)
+    return Watchdog(solver.n, solver.r_natural, law["lam_bar"] / solver.kkt_lambda_scale, stop.overlap,
+                    stall=solver.schedule is None and not (stop.rule == "eps" and stop.eps == 0),
+                    advice=solver.advice())
+
+
+def watch(watchdog, solver, certifier, fig):
+    """Feed the watchdog one iteration's figures; at a block's end, its verdict raised as a
+    NumericalError (collective: every input is reduced)."""
+    watchdog.observe(fig)
+    it = fig["iteration"]
+    if not watchdog.due(it):
+        return
+    last = certifier.last
+    kkt = last["criteria"]["kkt"]["value"] if last and it - last["iteration"] < watchdog_mod.BLOCK else math.nan
+    verdict = watchdog.block_end(it, solver.max_lambda(), certifier.w_change(it - 1, fig["W"]), kkt)
+    if verdict is not None:
+        kind, message = verdict
+        raise NumericalError(message, kind)
 
 
 def profile_lines(result):

@@ -306,7 +306,10 @@ def cases(quick):
              ["n=7", "dim=2", "init.sigma=1.0", "method.form=\"S\"", "method.alpha=0.04", "method.beta=0.15",
               f"method.gamma={0.9 * g_edge!r}"], allowed=("detected",), max_iter=60000, max_seconds=60),
         Case("spread start no contacts", "certified (falls together)",
-             SWEEP_BASE + ["n=200", "init.sigma=200.0"], max_iter=40000, max_seconds=60),
+             ["n=200", "dim=2", "init.sigma=200.0"], allowed=("certified",), max_iter=40000, max_seconds=60),
+        Case("spread start, fixed parameters", "certified or detected (it collapses and bounces back "
+             "with a period of ~6000 iterations)", SWEEP_BASE + ["n=200", "init.sigma=200.0"], max_iter=40000,
+             max_seconds=60),
         Case("dense start 2D N=2e4 sigma=1", "detected within its bound, or refused for memory",
              ["n=20000", "dim=2", "init.sigma=1.0", "method.alpha=0.0078", "method.beta=2800.0", "method.gamma=0.016"], allowed=("detected", "refused", "certified"), max_iter=3000,
              max_seconds=60, timeout=900, dump=False),

@@ -151,12 +151,18 @@ def test_daha_s_converges_iff_the_discrete_map_is_stable(comm, alpha, beta, d):
     radius ~3): section 4's advice beta = O(1/d^2) for the smooth form."""
     rho = discrete_spectral_radius(alpha, beta, d)
     assert abs(rho - 1) > 0.05, "test set-up: stay away from the stability boundary"
-    _, s, res, g = run_two(comm, [f"particles.diameter={d}", "method.form=S",
-                                  f"method.alpha={alpha}", f"method.beta={beta}",
-                                  "stop.max_iter=5000"])
+    sets = [f"particles.diameter={d}", "method.form=S", f"method.alpha={alpha}", f"method.beta={beta}",
+            "stop.max_iter=5000"]
     if rho < 1:
+        _, s, res, g = run_two(comm, sets)
         assert res["converged"], (rho, res)
         assert_contact(g, res, d, 0.25)
     else:
+        # the watchdog stops the ringing contact (no progress, or growth) within the bound
+        with pytest.raises(solver.NumericalError) as e:
+            run_two(comm, sets)
+        assert e.value.kind in ("stalled", "diverged") and e.value.solver.state.iteration < 5000
+        # without it the run goes to its bound, not converged
+        _, s, res, g = run_two(comm, sets + ["stop.watchdog=false"])
         assert not res["converged"], (rho, res)
         assert res["relative_change"] > 1e-6

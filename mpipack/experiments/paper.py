@@ -53,7 +53,7 @@ def scene_for(n, dim, seed, params, eps, eps_inner=1e-9, max_iter=100000, extra=
     """A validated scene dict: N spheres, standard Gaussian start, the given method params."""
     from .. import config
     sets = [f"n={n}", f"dim={dim}", "init.sigma=1.0", "stop.rule=eps", f"stop.eps={eps}", f"stop.max_iter={max_iter}",
-            f"method.eps_inner={eps_inner}", "output.progress_every=0"]
+            f"method.eps_inner={eps_inner}", "output.progress_every=0", "stop.watchdog=false"]
     for k, v in params.items():
         sets.append(f"method.{k}={v}" if k != "name" and k != "form" else f"method.{k}=\"{v}\"")
     if params.get("name") in ("daha", "aha") and "gamma" not in params:
@@ -298,7 +298,7 @@ def fig4_data(comm, cs, seeds, iters):
 def large_2d(comm, quick, extra_iters):
     """Section 4.3: N = 2000 DAHA-S to eps = 1e-5, then extra_iters more iterations."""
     from .. import config, solver as solver_mod
-    scene = config.load("paper-2d", ["output.progress_every=0"] + (["n=500"] if quick else []))
+    scene = config.load("paper-2d", ["output.progress_every=0", "stop.watchdog=false"] + (["n=500"] if quick else []))
     t0 = time.perf_counter()
     s, first = solver_mod.run(scene, comm)
     fired_at = s.state.iteration
@@ -313,7 +313,8 @@ def large_2d(comm, quick, extra_iters):
 
 def large_3d(comm, quick):
     from .. import config, solver as solver_mod
-    scene = config.load("paper-3d", ["output.progress_every=0"] + (["n=500", "stop.max_iter=2000"] if quick else []))
+    scene = config.load("paper-3d", ["output.progress_every=0", "stop.watchdog=false"]
+                        + (["n=500", "stop.max_iter=2000"] if quick else []))
     t0 = time.perf_counter()
     s, f = solver_mod.run(scene, comm)
     return {"n": scene.n, "iters": s.state.iteration, "wall": time.perf_counter() - t0,
