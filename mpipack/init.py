@@ -225,3 +225,40 @@ def separate(seed, gids, x, x_prev, flags, length):
         for k in range(b):
             x[i, k] += length * u[k] / norm
             x_prev[i, k] += length * u[k] / norm
+
+
+# ---- radial equalisation of a dense start (the fire-al schedule's first step) -------------------
+EQUALISE_BINS = 4096
+
+
+def radial_histogram(x, n_local, centre, r_max, bins=EQUALISE_BINS):
+    """Counts of |X_i - centre| over ``bins`` equal bins of [0, r_max] (int64, shape (bins,)):
+    summed over ranks, an exact (integer) picture of the cloud's radial distribution."""
+    r = np.sqrt(((x[:n_local] - centre) ** 2).sum(axis=1))
+    idx = np.minimum((r / r_max * bins).astype(np.int64), bins - 1) if r_max > 0 else np.zeros(n_local, np.int64)
+    return np.bincount(idx, minlength=bins).astype(np.int64)
+
+
+def equalise_radially(x, n_local, centre, r_max, counts, radius, dim):
+    """Move every local centre along its ray from ``centre`` so that the cloud becomes a uniform
+    ball of the given radius, keeping each particle's direction and the order of the radii:
+
+        r -> radius F(r)^(1/b),   F the cloud's radial distribution function (``counts``,
+                                  from ``radial_histogram`` summed over all ranks; linear
+                                  within a bin)
+
+    A Gaussian start has tails far beyond its bulk (the farthest of N at sqrt(2 ln N) sigma): a
+    homothety that makes its core dilute puts its tail tens of radii out. x (n_total, b) is
+    changed in place for the first n_local rows."""
+    bins = counts.shape[0]
+    n = counts.sum()
+    if n == 0 or r_max <= 0:
+        return
+    cdf = np.concatenate(([0], np.cumsum(counts))).astype(np.float64) / n  # at bin edges
+    d = x[:n_local] - centre
+    r = np.sqrt((d * d).sum(axis=1))
+    pos = np.minimum(r / r_max * bins, bins)
+    k = np.minimum(pos.astype(np.int64), bins - 1)
+    f = cdf[k] + (pos - k) * (cdf[k + 1] - cdf[k])
+    scale = np.where(r > 0, radius * f ** (1.0 / dim) / np.where(r > 0, r, 1.0), 1.0)
+    x[:n_local] = centre + d * scale[:, None]

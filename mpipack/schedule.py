@@ -6,7 +6,8 @@ Why (docs/convergence.md has the measurements): with fixed (alpha, beta, gamma, 
 stable only while alpha^2 Hess L + gamma^2 J^T Lambda J has its largest eigenvalue below 4;
 the multipliers grow like the pressure, ~R^2 ~ N^(2/b), so any fixed set leaves the stability
 region as N grows, and momentum (c < 2) with the lambda-weighted gamma term makes weakly loaded
-contacts chatter. The schedule therefore has two phases.
+contacts chatter. The schedule therefore spreads a dense start, explodes what overlap
+remains, then relaxes with FIRE on an augmented Lagrangian.
 
 Law (from N, b, the mean diameter d and the form; a uniform ball of packing fraction phi_p =
 1, 0.85, 0.64 in 1D, 2D, 3D, about b N contacts, and the virial identity of a KKT point,
@@ -15,18 +16,31 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
     R = d/2 (N/phi_p)^(1/b),  W_eq = N b R^2 / (2(b+2)),
     lam_bar = W_eq / (b N d^2) (S)  or  2 W_eq / (b N d) (NS),  g2 = 4 d^2 (S) or 1 (NS)
 
+0. Spread (a start whose first max overlap exceeds 0.5 d and whose W is below that of a uniform
+   ball of radius SPREAD R, SPREAD = sqrt 6: a sixth of the packing's density in 2D): every
+   centre moves along its ray from Xbar to SPREAD R F(r)^(1/b), F the cloud's radial
+   distribution (an exact histogram summed over ranks): a uniform dilute ball, directions and
+   the order of radii kept (``init.equalise_radially``). A dense Gaussian start otherwise
+   explodes by diffusion (kicks of ~10 d in random directions), thousands of iterations at
+   N = 1e5, and a homothety would put its tail (the farthest of N at sqrt(2 ln N) sigma) far
+   out, so that the fall back takes longer.
+
 1. Explosion (only for a start whose first max overlap exceeds 0.5 d): paper DAHA with c = 2,
    gamma = alpha = sqrt(2 theta / S_law), S_law = kappa g2 2b lam_bar (the CFL of the gamma
    term at the law's row stiffness), beta = q_e / (a3 T) with T the reduced largest dual gain
-   of a row; until the max overlap is below 0.1 d or W exceeds 10 W_eq (an explosion that
-   overshoots: in 1D it would fly to 1000 W_eq). Then lambda := 0 and X^{n-1} := X^n.
+   of a row, q_e = 100 for a dense start, 1 after the spread (the remaining overlaps are
+   isolated pairs: separate them, do not fling them across the gas); until the max overlap is
+   below 0.1 d or W exceeds 10 W_eq (an explosion that overshoots: in 1D it would fly to 1000
+   W_eq). Then lambda := 0 and X^{n-1} := X^n.
 
 2. FIRE on the augmented Lagrangian L_rho (``kernels_fire``, clip form) with per-pair penalty
    rho = c_b max(lambda, lam_fl), lam_fl = f lam_bar, a continuous dual step
    lambda <- max(0, lambda + omega rho phi) every iteration, and a multiplier (ALM) step
    lambda <- max(0, lambda + rho phi) (one pass, penalty off) when the inner residual
    r_in = ||grad L_rho|| / ||grad W|| <= eta (eta from 0.3, halved at each ALM step, floor 0.003)
-   and at least 20 iterations since the last. FIRE (Bitzek et al. 2006) in displacement form:
+   and at least 20 iterations since the last, or after MAX_INNER iterations without one (the
+   first one not before the fall from the spread ball, ~2 (SPREAD - 1) R / VMAX iterations,
+   is over). FIRE (Bitzek et al. 2006) in displacement form:
        X^{n+1} - X^n = a (X^n - X^{n-1}) + b G,    G = -grad L_rho,   |step_i| <= vmax d
        a = (1 - mix) dt / dt_prev,   b = (1 - mix) dt^2 + mix dt^2 |V| / (dt |G|)
    power G.V < 0: X^{n-1} := X^n, dt /= 2, mix = 0.1; after 5 positive iterations
@@ -44,6 +58,10 @@ import math
 THETA, KAPPA, Q_EXPLODE, OV_START, OV_END = 0.3, 8.0, 100.0, 0.5, 0.1
 EXPLODE_CAP = 0.25  # no sphere moves more than this fraction of the law's radius per iteration
 W_SWITCH = 10.0  # ... or once W exceeds this multiple of the law's W (an overshooting explosion)
+# a start whose W is below that of a uniform ball of radius SPREAD R (the law's radius) is first
+# spread into such a ball about its centre of mass (in 2D: a sixth of the packing's density)
+SPREAD = math.sqrt(6.0)
+Q_GENTLE = 1.0  # the explosion's gain once the start is a dilute ball: separate pairs, no kicks
 # augmented Lagrangian and FIRE
 C_B, FLOOR, OMEGA, VMAX = 4.0, 3.0, 0.01, 0.02
 N_DELAY, F_INC, F_DEC, MIX0, F_MIX, DT0_FRAC = 5, 1.1, 0.5, 0.1, 0.99, 0.1
@@ -72,6 +90,8 @@ class FireAL:
     def __init__(self, n, dim, d, form):
         law = packing_law(n, dim, d, form)
         self.d, self.dim, self.w_eq = d, dim, law["W"]
+        self.radius = law["radius"]
+        self.fall_iterations = int(2.0 * max(SPREAD - 1.0, 0.0) * law["radius"] / (VMAX * d))
         self.explode_cap = EXPLODE_CAP * law["radius"]
         self.lam_floor = FLOOR * law["lam_bar"]
         s_law = KAPPA * law["g2"] * 2 * dim * law["lam_bar"]
@@ -102,6 +122,10 @@ class FireAL:
             s["gain"] = max(fig["max_gain"], 1.0)
             if s["phase"] == "start":
                 s["phase"] = "explode" if fig["max_overlap"] > OV_START else "fire"
+                if s["phase"] == "explode" and SPREAD > 0 and fig["W"] < SPREAD ** 2 * self.w_eq:
+                    s["equalise_radius"] = SPREAD * self.radius
+                    s["pending"] = ["equalise", "reset_lambda", "restart"]
+                    s["gentle"] = True
             elif fig["max_overlap"] < OV_END or fig["W"] > W_SWITCH * self.w_eq:
                 s["phase"] = "fire"
             if s["phase"] == "fire":
@@ -130,7 +154,10 @@ class FireAL:
                 s["dt"] = min(s["dt"] * F_INC, s["dt_max"])
                 s["mix"] *= F_MIX
         s["dt"] = min(s["dt"], s["dt_max"])
-        stalled = MAX_INNER > 0 and s["dual_steps"] >= 1 and s["since_dual"] >= MAX_INNER
+        # forced after MAX_INNER iterations without one; the first one also waits for the fall
+        # from the spread ball (twice ~(SPREAD - 1) R / VMAX iterations at the speed cap)
+        wait = MAX_INNER + (0 if s["dual_steps"] >= 1 else self.fall_iterations)
+        stalled = MAX_INNER > 0 and s["since_dual"] >= wait
         if not was_dual and s["since_dual"] >= MIN_INNER and (s["inner_residual"] <= s["eta"] or stalled):
             s["dual_now"] = True
             s["dual_steps"] += 1
@@ -148,7 +175,7 @@ class FireAL:
         s = self.s
         if s["phase"] != "fire":
             a3 = 0.5 * self.gamma_explode ** 2  # DAHA, c = 2, alpha = gamma
-            q = Q_EXPLODE if s["phase"] == "explode" else 0.5
+            q = (Q_GENTLE if s.get("gentle") else Q_EXPLODE) if s["phase"] == "explode" else 0.5
             return 1.0, 0.0, a3, a3, q / (a3 * s["gain"]), 0.0, False, False, self.explode_cap
         dt, mix = s["dt"], s["mix"]
         a = (1.0 - mix) * dt / s["dt_prev"]
@@ -171,4 +198,4 @@ class FireAL:
     def summary(self):
         s = self.s
         return {"phase": s["phase"], "switch_iteration": s["switch_iteration"],
-                "restarts": s["restarts"], "dual_steps": s["dual_steps"]}
+                "spread": bool(s.get("gentle")), "restarts": s["restarts"], "dual_steps": s["dual_steps"]}

@@ -265,6 +265,18 @@ class Solver:
         self.counters["separated"] = total
         self.rebuild()
 
+    def _equalise(self, radius):
+        """Spread the cloud radially into a uniform ball of ``radius`` about Xbar, keeping
+        directions and the order of radii (``init.equalise_radially``); collective: one max
+        and one sum of integer counts, so the same on any rank count."""
+        st, n = self.state, self.state.n_local
+        local = float(((st.x[:n] - self.xbar) ** 2).sum(axis=1).max()) if n else 0.0
+        r_max = math.sqrt(self.comm.allreduce(np.array([local]), op="max")[0])
+        counts = self.comm.allreduce(init.radial_histogram(st.x, n, self.xbar, r_max), op="sum")
+        init.equalise_radially(st.x, n, self.xbar, r_max, counts, radius, self.dim)
+        self.rebuild()
+        self.xbar, _ = self._centre_of_mass()
+
     def _centre_of_mass(self):
         """Xbar and W = 1/2 sum |X_i - Xbar|^2 of the current positions (collective)."""
         st = self.state
@@ -296,7 +308,9 @@ class Solver:
         """The schedule's state changes and the coefficients of the next pass."""
         st = self.state
         for action in self.schedule.take_pending():
-            if action == "reset_lambda":
+            if action == "equalise":  # a dense start made a dilute uniform ball
+                self._equalise(self.schedule.s["equalise_radius"])
+            elif action == "reset_lambda":
                 st.pair_lambda[:] = 0.0
             elif action == "restart":  # momentum restart: X^{n-1} := X^n
                 st.x_prev[:st.n_local] = st.x[:st.n_local]

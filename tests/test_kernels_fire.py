@@ -150,3 +150,33 @@ def test_kkt_point_is_a_fixed_point():
                                           p["a3"], p["a4"], p["beta"], p["floor"], p["clip"], p["weighted"],
                                           p["vmax"], True, acc, mx)
         assert np.array_equal(x_new, x) and np.array_equal(lam, np.full(2, lam_star)), p
+
+
+@pytest.mark.parametrize("dim", [1, 2, 3])
+def test_radial_equalisation_makes_a_uniform_ball(dim):
+    """A Gaussian cloud spread by its own radial distribution: every centre keeps its direction
+    and its rank in radius, and the radii become those of a uniform ball (F(r) = (r/R)^b), also
+    when the histogram is summed from several ranks' parts."""
+    from mpipack import init
+    rng = np.random.default_rng(dim)
+    n, radius = 4000, 30.0
+    x = rng.normal(size=(n, dim)) * 0.7
+    centre = x.mean(axis=0)
+    r0 = np.sqrt(((x - centre) ** 2).sum(axis=1))
+    r_max = r0.max()
+    parts = [x[:1500], x[1500:]]  # two "ranks"
+    counts = sum(init.radial_histogram(p, p.shape[0], centre, r_max) for p in parts)
+    assert counts.dtype == np.int64 and counts.sum() == n
+    spread = [p.copy() for p in parts]
+    for p in spread:
+        init.equalise_radially(p, p.shape[0], centre, r_max, counts, radius, dim)
+    y = np.concatenate(spread)
+    r1 = np.sqrt(((y - centre) ** 2).sum(axis=1))
+    assert r1.max() <= radius * (1 + 1e-12)
+    # directions kept, order of radii kept
+    cos = ((x - centre) * (y - centre)).sum(axis=1) / (r0 * r1)
+    assert np.all(cos > 1 - 1e-12)
+    assert np.array_equal(np.argsort(r0, kind="stable"), np.argsort(r1, kind="stable"))
+    # uniform in the ball: the fraction within q R is q^b
+    for q in (0.3, 0.6, 0.9):
+        assert abs((r1 <= q * radius).mean() - q ** dim) < 0.02, (q, (r1 <= q * radius).mean())

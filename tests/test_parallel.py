@@ -86,8 +86,11 @@ def test_same_bits_on_1_2_3_ranks(run_mpipack, name):
         assert_bitwise_equal(d1, d, f"{name}: 1 rank vs {P} ranks")
         for key in ("W", "max_overlap", "relative_change", "density", "active_pairs", "rebuilds"):
             assert s[key] == s1[key], (key, P, s[key], s1[key])
-        # particles crossed rank boundaries: pair partners had to be fetched from afar
-        assert s["rebalances"] >= 1 and s["far_ghosts"] > 0, s
+        assert s["rebalances"] >= 1, s
+        if "schedule" in s:  # the dense start was spread into a ball: every sphere migrated
+            assert s["schedule"]["spread"] is True, s
+        else:  # particles crossed rank boundaries: pair partners had to be fetched from afar
+            assert s["far_ghosts"] > 0, s
 
 
 def test_empty_rank_two_spheres(run_mpipack):
@@ -209,13 +212,13 @@ def test_default_scene_converges_on_2_ranks(run_mpipack):
     assert all(c["ok"] for c in s["certificate"].values()), s["certificate"]
     assert s["max_overlap"] <= 1e-3 and s["kkt_residual"] <= 1e-2, s
     assert s["schedule"]["phase"] == "fire" and s["schedule"]["dual_steps"] >= 1, s
-    # measured 3200-9700 iterations on seeds 0-9 (docs/convergence.md)
-    assert 0 < s["iterations"] < 12000, s
+    # measured 2950-12000 iterations on seeds 0-19 (docs/convergence.md)
+    assert 0 < s["iterations"] < 15000, s
     # a nearly hexagonal packing: below the optimum pi / (2 sqrt 3) = 0.907, well above the
     # paper's 0.87
     assert 0.87 < s["density"] < 0.907, s
     assert s["active_pairs"] > 2000  # a packed cloud: well over one contact per sphere
-    assert s["rebuilds"] > 1 and s["far_ghosts"] > 0
+    assert s["rebuilds"] > 1 and s["schedule"]["spread"] is True, s
     check_dump_consistency(s, d)
     # the same certified packing, bit for bit, on one rank
     p1, s1, d1 = run_mpipack(1, None, [], dump=True)
