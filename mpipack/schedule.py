@@ -90,7 +90,7 @@ class FireAL:
     def __init__(self, n, dim, d, form):
         law = packing_law(n, dim, d, form)
         self.d, self.dim, self.w_eq = d, dim, law["W"]
-        self.radius = law["radius"]
+        self.spread_radius = SPREAD * law["radius"]  # the uniform ball of step 0
         self.fall_iterations = int(2.0 * max(SPREAD - 1.0, 0.0) * law["radius"] / (VMAX * d))
         self.explode_cap = EXPLODE_CAP * law["radius"]
         self.lam_floor = FLOOR * law["lam_bar"]
@@ -123,9 +123,8 @@ class FireAL:
             if s["phase"] == "start":
                 s["phase"] = "explode" if fig["max_overlap"] > OV_START else "fire"
                 if s["phase"] == "explode" and SPREAD > 0 and fig["W"] < SPREAD ** 2 * self.w_eq:
-                    s["equalise_radius"] = SPREAD * self.radius
                     s["pending"] = ["equalise", "reset_lambda", "restart"]
-                    s["gentle"] = True
+                    s["spread"] = True
             elif fig["max_overlap"] < OV_END or fig["W"] > W_SWITCH * self.w_eq:
                 s["phase"] = "fire"
             if s["phase"] == "fire":
@@ -175,7 +174,7 @@ class FireAL:
         s = self.s
         if s["phase"] != "fire":
             a3 = 0.5 * self.gamma_explode ** 2  # DAHA, c = 2, alpha = gamma
-            q = (Q_GENTLE if s.get("gentle") else Q_EXPLODE) if s["phase"] == "explode" else 0.5
+            q = (Q_GENTLE if s.get("spread") else Q_EXPLODE) if s["phase"] == "explode" else 0.5
             return 1.0, 0.0, a3, a3, q / (a3 * s["gain"]), 0.0, False, False, self.explode_cap
         dt, mix = s["dt"], s["mix"]
         a = (1.0 - mix) * dt / s["dt_prev"]
@@ -198,4 +197,4 @@ class FireAL:
     def summary(self):
         s = self.s
         return {"phase": s["phase"], "switch_iteration": s["switch_iteration"],
-                "spread": bool(s.get("gentle")), "restarts": s["restarts"], "dual_steps": s["dual_steps"]}
+                "spread": bool(s.get("spread")), "restarts": s["restarts"], "dual_steps": s["dual_steps"]}

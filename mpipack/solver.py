@@ -50,14 +50,13 @@ from .watchdog import Watchdog
 
 
 class NumericalError(RuntimeError):
-    """NaN, Inf, divergence or oscillation without progress (``watchdog``). ``solver`` (set by
-    ``run``) holds the last good state: positions of the last finite iteration and their
-    multipliers. ``kind``: "non-finite", "diverged" or "stalled"."""
-    solver = None
+    """NaN, Inf, divergence or oscillation without progress (``watchdog``). ``solver`` holds
+    the last good state: positions of the last finite iteration and their multipliers.
+    ``kind``: "non-finite", "diverged" or "stalled"."""
 
-    def __init__(self, message, kind="diverged"):
+    def __init__(self, message, solver, kind="diverged"):
         super().__init__(message)
-        self.kind = kind
+        self.solver, self.kind = solver, kind
 
 
 # set by a signal handler (``request_stop``), read into every reduction
@@ -113,7 +112,7 @@ class Solver:
         elif m.schedule == "fire-al":
             from . import kernels_fire, schedule
             p = scene.particles
-            self.schedule = schedule.FireAL(self.n, self.dim, 0.5 * (p.diameter + p.d_max), m.form)
+            self.schedule = schedule.FireAL(self.n, self.dim, init.mean_diameter(scene), m.form)
             self._kernel = kernels_fire.fire_al_step(m.form, self.dim)
         else:
             self.coeffs = kernels.coefficients(m.name, m.alpha, m.beta, m.gamma, m.c)
@@ -309,7 +308,7 @@ class Solver:
         st = self.state
         for action in self.schedule.take_pending():
             if action == "equalise":  # a dense start made a dilute uniform ball
-                self._equalise(self.schedule.s["equalise_radius"])
+                self._equalise(self.schedule.spread_radius)
             elif action == "reset_lambda":
                 st.pair_lambda[:] = 0.0
             elif action == "restart":  # momentum restart: X^{n-1} := X^n
@@ -334,7 +333,7 @@ class Solver:
         if red.overflowed() or not red.all_maxima_finite():
             raise NumericalError(
                 f"non-finite or diverging positions at iteration {st.iteration + 1} "
-                f"(NaN/Inf, or |X|^2 beyond {exactsum.RANGE:.3g}); {self.advice()}", "non-finite")
+                f"(NaN/Inf, or |X|^2 beyond {exactsum.RANGE:.3g}); {self.advice()}", self, "non-finite")
         dx2, xx2 = red.value("dx2"), red.value("xx2")
         max_step = math.sqrt(red.max("step2"))
         fig = {
@@ -356,7 +355,7 @@ class Solver:
         if r_gyr > self.r_diverge:
             raise NumericalError(
                 f"the cloud diverges: radius of gyration {r_gyr:.3g} at iteration {st.iteration + 1}, "
-                f"{DIVERGENCE_FACTOR:g} times its natural size; {self.advice()}")
+                f"{DIVERGENCE_FACTOR:g} times its natural size; {self.advice()}", self)
         fig["imbalance"] = fig["max_local"] * self.comm.size / self.n
         self.counters["max_imbalance"] = max(self.counters["max_imbalance"], fig["imbalance"])
         fig["stop_request"] = red.max("stop_request") > 0
@@ -448,11 +447,7 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
             h(ctx)
     first_iteration = math.nan
     while solver.state.iteration < max_iter:
-        try:
-            fig = solver.step()
-        except NumericalError as e:
-            e.solver = solver
-            raise
+        fig = solver.step()
         if first_iteration != first_iteration:  # NaN until the first iteration is done
             first_iteration = process_age_seconds()
         ctx.iteration, ctx.figures, ctx.elapsed = fig["iteration"], fig, fig["wall"]
@@ -475,11 +470,7 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
             ctx.stop_reason = "eps"
             break
         if watchdog is not None:
-            try:
-                watch(watchdog, solver, certifier, fig)
-            except NumericalError as e:
-                e.solver = solver
-                raise
+            watch(watchdog, solver, certifier, fig)
     loop_seconds = time.perf_counter() - t_loop
     timers.stop()
     final = solver.finish()
@@ -528,8 +519,7 @@ def make_watchdog(solver, scene):
     if not stop.watchdog:
         return None
     from .schedule import packing_law
-    p = scene.particles
-    law = packing_law(solver.n, solver.dim, 0.5 * (p.diameter + p.d_max), scene.method.form)
+    law = packing_law(solver.n, solver.dim, init.mean_diameter(scene), scene.method.form)
     return Watchdog(solver.n, solver.r_natural, law["lam_bar"] / solver.kkt_lambda_scale, stop.overlap,
                     stall=solver.schedule is None and not (stop.rule == "eps" and stop.eps == 0),
                     advice=solver.advice())
@@ -547,7 +537,7 @@ def watch(watchdog, solver, certifier, fig):
     verdict = watchdog.block_end(it, solver.max_lambda(), certifier.w_change(it - 1, fig["W"]), kkt)
     if verdict is not None:
         kind, message = verdict
-        raise NumericalError(message, kind)
+        raise NumericalError(message, solver, kind)
 
 
 def profile_lines(result):
