@@ -27,14 +27,14 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
 
 1. Explosion (only for a start whose first max overlap exceeds 0.5 d): paper DAHA with c = 2,
    gamma = alpha = sqrt(2 theta / S_law), S_law = kappa g2 2b lam_bar (the CFL of the gamma
-   term at the law's row stiffness), beta = q_e / (a3 T) with T the reduced largest dual gain
+   term at the law's row stiffness; the weight of grad W is alpha^2 d^p: p = 2 (S), 1 (NS)), beta = q_e / (a3 T) with T the reduced largest dual gain
    of a row, q_e = 100 for a dense start, 1 after the spread (the remaining overlaps are
    isolated pairs: separate them, do not fling them across the gas); until the max overlap is
    below 0.1 d or W exceeds 10 W_eq (an explosion that overshoots: in 1D it would fly to 1000
    W_eq). Then lambda := 0 and X^{n-1} := X^n.
 
 2. FIRE on the augmented Lagrangian L_rho (``kernels_fire``, clip form) with per-pair penalty
-   rho = c_b max(lambda, lam_fl), lam_fl = f lam_bar, a continuous dual step
+   rho = c_b max(lambda, lam_fl) / d^p (phi has the units of d^p), lam_fl = f lam_bar, a continuous dual step
    lambda <- max(0, lambda + omega rho phi) every iteration, and a multiplier (ALM) step
    lambda <- max(0, lambda + rho phi) (one pass, penalty off) when the inner residual
    r_in = ||grad L_rho|| / ||grad W|| <= eta (eta from 0.3, halved at each ALM step, floor 0.003)
@@ -90,13 +90,20 @@ class FireAL:
     def __init__(self, n, dim, d, form):
         law = packing_law(n, dim, d, form)
         self.d, self.dim, self.w_eq = d, dim, law["W"]
+        # phi has the units of d^p (S: p = 2, NS: p = 1) and lambda those of W / d^p: the
+        # penalty rho = C_B w / d^p and the dual gains are per unit of phi / d^p, and the
+        # explosion's a3 (the weight of grad W) is gamma^2 d^p / 2, so that a scene scaled by
+        # any length is the same run (the figures of d = 1 are unchanged)
+        self.phi_scale = d * d if form == "S" else d
         self.spread_radius = SPREAD * law["radius"]  # the uniform ball of step 0
         self.fall_iterations = int(2.0 * max(SPREAD - 1.0, 0.0) * law["radius"] / (VMAX * d))
         self.explode_cap = EXPLODE_CAP * law["radius"]
         self.lam_floor = FLOOR * law["lam_bar"]
+        # the floor of a row's dual gain: |grad phi|^2 of one pair at distance d/2 (S: d^2; NS: 1)
+        self.one_gain = d * d if form == "S" else 1.0
         s_law = KAPPA * law["g2"] * 2 * dim * law["lam_bar"]
         self.gamma_explode = math.sqrt(2.0 * THETA / s_law)
-        k_rel = 1.0 + 2.0 * (4 * dim) * C_B * self.lam_floor * law["g2"]
+        k_rel = 1.0 + 2.0 * (4 * dim) * C_B * self.lam_floor * law["g2"] / self.phi_scale
         dt_max = math.sqrt(1.0 / k_rel)
         self.s = {
             "phase": "start",  # start -> explode -> fire, or start -> fire
@@ -119,7 +126,7 @@ class FireAL:
         max_row, power, force2, change2, W, max_overlap)."""
         s = self.s
         if s["phase"] != "fire":
-            s["gain"] = max(fig["max_gain"], 1.0)
+            s["gain"] = max(fig["max_gain"], self.one_gain)  # at least one contact's
             if s["phase"] == "start":
                 s["phase"] = "explode" if fig["max_overlap"] > OV_START else "fire"
                 if s["phase"] == "explode" and SPREAD > 0 and fig["W"] < SPREAD ** 2 * self.w_eq:
@@ -173,17 +180,19 @@ class FireAL:
         """(a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual, vmax) of the next pass."""
         s = self.s
         if s["phase"] != "fire":
-            a3 = 0.5 * self.gamma_explode ** 2  # DAHA, c = 2, alpha = gamma
+            a4 = 0.5 * self.gamma_explode ** 2  # DAHA, c = 2, alpha = gamma (in units of d)
+            a3 = a4 * self.phi_scale
             q = (Q_GENTLE if s.get("spread") else Q_EXPLODE) if s["phase"] == "explode" else 0.5
-            return 1.0, 0.0, a3, a3, q / (a3 * s["gain"]), 0.0, False, False, self.explode_cap
+            return 1.0, 0.0, a3, a4, q / (a3 * s["gain"]), 0.0, False, False, self.explode_cap
         dt, mix = s["dt"], s["mix"]
         a = (1.0 - mix) * dt / s["dt_prev"]
         b = (1.0 - mix) * dt * dt + mix * dt * dt * s["speed_ratio"]
         s["dt_prev"], s["b"] = dt, b
+        rho = C_B / self.phi_scale  # per unit of max(lambda, lam_fl)
         if s["dual_now"]:  # the multiplier step: lambda + rho phi, penalty off
-            a4, beta = 0.0, C_B
+            a4, beta = 0.0, rho
         else:
-            a4, beta = b * C_B, OMEGA * C_B
+            a4, beta = b * rho, OMEGA * rho
         return 1.0 + a, -a, b, a4, beta, self.lam_floor, True, True, VMAX * self.d
 
     # ---- checkpoint ----------------------------------------------------------------------------

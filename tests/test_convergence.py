@@ -40,3 +40,22 @@ def test_a_run_that_cannot_certify_says_why(tmp_path):
     failed = [k for k, c in s["certificate"].items() if not c["ok"]]
     assert failed, s["certificate"]
     assert "NOT" in proc.stdout and "converged" in proc.stdout, describe(proc)
+
+
+@pytest.mark.parametrize("form", ["S", "NS"])
+def test_the_schedule_does_not_depend_on_the_length_unit(tmp_path, form):
+    """The penalty, the dual gains and the explosion's weights carry the units of phi (d^2 for
+    S, d for NS): a scene scaled by a power of two is the same run, scaled (the same
+    iterations, W times the scale squared), and a scene in small units (d = 0.01, once a run
+    that never separated) certifies."""
+    base = ["n=300", f"method.form={form}", "seed=1", "stop.max_iter=20000", "output.snapshots=false"]
+    runs = {}
+    for d in (1.0, 1024.0, 0.01):
+        (tmp_path / str(d)).mkdir()
+        proc, s, _ = mpipack_run(1, tmp_path / str(d), None, base + [f"particles.diameter={d}"])
+        assert proc.returncode == 0, describe(proc)
+        assert s["converged"] and s["stop_reason"] == "certified", (d, s["certificate"])
+        runs[d] = s
+    assert runs[1024.0]["iterations"] == runs[1.0]["iterations"]
+    # (the exact sums drop parts below 2^-78, not scaled with the scene: equal to rounding)
+    assert runs[1024.0]["W"] == pytest.approx(runs[1.0]["W"] * 1024.0 ** 2, rel=1e-12)
