@@ -4,13 +4,16 @@ or an augmented-Lagrangian step with FIRE momentum. Serial array code: never imp
 Notation as in ``kernels``: phi_ij (S: d_ij^2 - r^2, NS: d_ij - r), grad_i phi_ij, and
 |grad phi|^2 = 4 r^2 (S) or 1 (NS), |Hess phi| = 2 (S) or 1/r (NS). For every row entry:
 
-    dual      lam   = max(0, lam + beta wd phi(X^n))   wd = max(lam, lam_floor) (weighted_dual)
-                                                       or 1; skipped when not update_lambda
+    dual      lam   = max(0, lam + beta wd phi~)       weighted_dual: wd = max(lam, lam_floor),
+                                                       phi~ = phi / d_ij^p (p = 2 for S, 1 for
+                                                       NS: phi in units of the pair's size);
+                                                       else wd = 1, phi~ = phi; skipped when
+                                                       not update_lambda
     weight    w     = max(lam, lam_floor)              (lam_floor = 0: the paper's lambda)
-    force     clip:     m = max(0, a3 lam + a4 w phi)           (= a3 max(0, lam + rho phi),
-                                                                rho = a4 w / a3: the trial
-                                                                multiplier of the augmented
-                                                                Lagrangian, penalty rho)
+    force     clip:     m = max(0, a3 lam + a4 w phi / d_ij^p)  (= a3 max(0, lam + rho phi),
+                                                                rho = a4 w / (a3 d_ij^p): the
+                                                                trial multiplier of the
+                                                                augmented Lagrangian, penalty rho)
               not clip: m = a3 lam + a4 w phi if lam > 0 else 0  (DAHA (2.10a), gamma form)
     per particle
               G_i = -(a3 (X_i - Xbar) + sum_j m grad_i phi_ij)
@@ -28,7 +31,8 @@ Reduced figures (block "step" of the exact sums, block "step" of the maxima):
             X^{n-1}), sum |G|^2
     maxima  max |D_i|^2, max overlap (d_ij - r)/d_ij at X^n,
             T = max_i sum_{lam>0 or phi>0} |grad phi|^2 (the dual gain of a row),
-            K = max_i a3 + 2 sum_{m != 0} (a4 w |grad phi|^2 + |m| |Hess phi|) (Gershgorin row)
+            K = max_i a3 + 2 sum_{m != 0} (a4 w |grad phi|^2 [/ d_ij^p under clip] + |m| |Hess phi|)
+            (Gershgorin row)
 """
 
 import numpy as np
@@ -85,12 +89,19 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
                 phi = dij - r
                 g2 = 1.0
                 hess = 1.0 / r if r > 0.0 else 0.0
+            # the penalty's phi in units of the pair's diameter (clip form): phi / d_ij^p
+            unit = 1.0
+            if clip:
+                unit = 1.0 / (dij * dij) if form == SMOOTH else 1.0 / dij
+            phin = phi * unit
             lam = pair_lambda[e]
             if update_lambda:
                 wd = 1.0
+                pd = phi
                 if weighted_dual:
                     wd = lam if lam > lam_floor else lam_floor
-                lam = lam + beta * wd * phi
+                    pd = phin
+                lam = lam + beta * wd * pd
                 if lam < 0.0:
                     lam = 0.0
                 pair_lambda[e] = lam
@@ -101,7 +112,7 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
                 gain += g2
             w = lam if lam > lam_floor else lam_floor
             if clip:
-                m = a3 * lam + a4 * w * phi
+                m = a3 * lam + a4 * w * phin
                 if m < 0.0:
                     m = 0.0
             elif lam > 0.0:
@@ -111,7 +122,7 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
             if lam > 0.0:
                 n_active += 1
             if m != 0.0:
-                row += a4 * w * g2 + abs(m) * hess
+                row += a4 * w * g2 * unit + abs(m) * hess
                 if form == SMOOTH:
                     g = 2.0 * m
                     for k in range(dim):

@@ -34,7 +34,7 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
    W_eq). Then lambda := 0 and X^{n-1} := X^n.
 
 2. FIRE on the augmented Lagrangian L_rho (``kernels_fire``, clip form) with per-pair penalty
-   rho = c_b max(lambda, lam_fl) / d^p (phi has the units of d^p), lam_fl = f lam_bar, a continuous dual step
+   rho = c_b max(lambda, lam_fl) / d_ij^p (phi has the units of d^p), lam_fl = f lam_bar, a continuous dual step
    lambda <- max(0, lambda + omega rho phi) every iteration, and a multiplier (ALM) step
    lambda <- max(0, lambda + rho phi) (one pass, penalty off) when the inner residual
    r_in = ||grad L_rho|| / ||grad W|| <= eta (eta from 0.3, halved at each ALM step, floor 0.003)
@@ -91,9 +91,9 @@ class FireAL:
         law = packing_law(n, dim, d, form)
         self.d, self.dim, self.w_eq = d, dim, law["W"]
         # phi has the units of d^p (S: p = 2, NS: p = 1) and lambda those of W / d^p: the
-        # penalty rho = C_B w / d^p and the dual gains are per unit of phi / d^p, and the
-        # explosion's a3 (the weight of grad W) is gamma^2 d^p / 2, so that a scene scaled by
-        # any length is the same run (the figures of d = 1 are unchanged)
+        # penalty rho = C_B w / d_ij^p and the dual gains are per unit of phi / d_ij^p (each
+        # pair's own size, in the kernel), and the explosion's a3 (the weight of grad W) is
+        # gamma^2 d^p / 2, so that a scene scaled by any length is the same run
         self.phi_scale = d * d if form == "S" else d
         self.spread_radius = SPREAD * law["radius"]  # the uniform ball of step 0
         self.fall_iterations = int(2.0 * max(SPREAD - 1.0, 0.0) * law["radius"] / (VMAX * d))
@@ -188,11 +188,11 @@ class FireAL:
         a = (1.0 - mix) * dt / s["dt_prev"]
         b = (1.0 - mix) * dt * dt + mix * dt * dt * s["speed_ratio"]
         s["dt_prev"], s["b"] = dt, b
-        rho = C_B / self.phi_scale  # per unit of max(lambda, lam_fl)
+        # rho = C_B max(lambda, lam_fl) per unit of phi / d_ij^p (the kernel divides)
         if s["dual_now"]:  # the multiplier step: lambda + rho phi, penalty off
-            a4, beta = 0.0, rho
+            a4, beta = 0.0, C_B
         else:
-            a4, beta = b * rho, OMEGA * rho
+            a4, beta = b * C_B, OMEGA * C_B
         return 1.0 + a, -a, b, a4, beta, self.lam_floor, True, True, VMAX * self.d
 
     # ---- checkpoint ----------------------------------------------------------------------------

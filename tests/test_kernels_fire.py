@@ -24,11 +24,13 @@ def ref_fire_al(form, x, x_prev, diam, lam_prev, xbar, a1, a2, a3, a4, beta, flo
         for l in range(k + 1, n):
             dkl = 0.5 * (diam[k] + diam[l])
             phi, g = ref_phi_grad(form, x[k], x[l], dkl)
+            # the augmented Lagrangian's phi is per unit of the pair's size: phi / d_kl^p
+            unit = (1.0 / dkl ** (2 if form == "S" else 1)) if clip else 1.0
             if update:
                 wd = max(lam_prev[k, l], floor) if weighted else 1.0
-                lam[k, l] = lam[l, k] = max(0.0, lam_prev[k, l] + beta * wd * phi)
+                lam[k, l] = lam[l, k] = max(0.0, lam_prev[k, l] + beta * wd * phi * (unit if weighted else 1.0))
             w = max(lam[k, l], floor)
-            m = a3 * lam[k, l] + a4 * w * phi
+            m = a3 * lam[k, l] + a4 * w * phi * unit
             m = max(0.0, m) if clip else (m if lam[k, l] > 0 else 0.0)
             g2 = float(g @ g)
             r = math.sqrt(float((x[k] - x[l]) @ (x[k] - x[l])))
@@ -37,8 +39,8 @@ def ref_fire_al(form, x, x_prev, diam, lam_prev, xbar, a1, a2, a3, a4, beta, flo
                 gain[k] += g2
                 gain[l] += g2
             if m != 0:
-                row[k] += a4 * w * g2 + abs(m) * hess
-                row[l] += a4 * w * g2 + abs(m) * hess
+                row[k] += a4 * w * g2 * unit + abs(m) * hess
+                row[l] += a4 * w * g2 * unit + abs(m) * hess
                 G[k] -= m * g
                 G[l] += m * g
     V = x - x_prev
