@@ -34,13 +34,19 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
    W_eq). Then lambda := 0 and X^{n-1} := X^n.
 
 2. FIRE on the augmented Lagrangian L_rho (``kernels_fire``, clip form) with per-pair penalty
-   rho = c_b max(lambda, lam_fl) / d_ij^p (phi has the units of d^p), lam_fl = f lam_bar, a continuous dual step
-   lambda <- max(0, lambda + omega rho phi) every iteration, and a multiplier (ALM) step
-   lambda <- max(0, lambda + rho phi) (one pass, penalty off) when the inner residual
-   r_in = ||grad L_rho|| / ||grad W|| <= eta (eta from 0.3, halved at each ALM step, floor 0.003)
-   and at least 20 iterations since the last, or after MAX_INNER iterations without one (the
-   first one not before the fall from the spread ball, ~2 (SPREAD - 1) R / VMAX iterations,
-   is over). FIRE (Bitzek et al. 2006) in displacement form:
+   rho = c_b max(lambda, lam_fl) / d_ij^p (phi has the units of d^p), lam_fl = f lam_bar; while
+   c_b is at its start (4), a continuous dual step lambda <- max(0, lambda + omega rho phi)
+   every iteration; a multiplier (ALM) step lambda <- max(0, lambda + rho phi) (one pass, penalty
+   off) when the inner residual r_in = ||grad L_rho|| / ||grad W|| <= eta (eta from 0.3, halved
+   at each ALM step, floor 0.003) and at least 20 iterations since the last, or after MAX_INNER
+   iterations without one (the first one not before the fall from the spread ball, ~2 (SPREAD -
+   1) R / VMAX iterations, is over). At an ALM step whose max overlap is above half that of the
+   step before (the multipliers did not gain on the overlap), c_b doubles (up to 256) and the
+   continuous dual stops: in a disordered packing (3D, mixed sizes) the soft penalty lets
+   contacts slide and rearrange after every multiplier step, and the continuous dual's small
+   kicks keep the inner problem from settling; a stiffer penalty freezes the contact network so
+   that the multiplier steps converge (docs/convergence.md, section 3c).
+   FIRE (Bitzek et al. 2006) in displacement form:
        X^{n+1} - X^n = a (X^n - X^{n-1}) + b G,    G = -grad L_rho,   |step_i| <= vmax d
        a = (1 - mix) dt / dt_prev,   b = (1 - mix) dt^2 + mix dt^2 |V| / (dt |G|)
    power G.V < 0: X^{n-1} := X^n, dt /= 2, mix = 0.1; after 5 positive iterations
@@ -66,7 +72,11 @@ Q_GENTLE = 1.0  # the explosion's gain once the start is a dilute ball: separate
 C_B, FLOOR, OMEGA, VMAX = 4.0, 3.0, 0.01, 0.02
 N_DELAY, F_INC, F_DEC, MIX0, F_MIX, DT0_FRAC = 5, 1.1, 0.5, 0.1, 0.99, 0.1
 ETA0, ETA_F, ETA_MIN, MIN_INNER = 0.3, 0.5, 0.003, 20
-MAX_INNER = 1000  # a multiplier step after this many iterations without one (0: never forced)
+MAX_INNER = 3000  # a multiplier step after this many iterations without one (0: never forced)
+# the penalty factor c_b doubles at a multiplier step whose max overlap is above PEN_GROW times
+# that of the step before (the multipliers did not gain on the overlap), up to CB_MAX; the
+# continuous dual step runs only while c_b is at its start
+PEN_GROW, CB_MAX = 0.5, 256.0
 PACKING_FRACTION = {1: 1.0, 2: 0.85, 3: 0.64}
 
 
@@ -113,7 +123,7 @@ class FireAL:
             "dt": DT0_FRAC * dt_max, "dt_prev": DT0_FRAC * dt_max, "dt_max": dt_max,
             "mix": MIX0, "n_positive": 0, "speed_ratio": 0.0, "b": (DT0_FRAC * dt_max) ** 2,
             "eta": ETA0, "since_dual": 0, "dual_now": False, "inner_residual": math.inf,
-            "restarts": 0, "dual_steps": 0,
+            "restarts": 0, "dual_steps": 0, "cb": C_B, "ov_dual": math.inf,
         }
 
     @property
@@ -167,6 +177,9 @@ class FireAL:
         if not was_dual and s["since_dual"] >= MIN_INNER and (s["inner_residual"] <= s["eta"] or stalled):
             s["dual_now"] = True
             s["dual_steps"] += 1
+            if fig["max_overlap"] > PEN_GROW * s["ov_dual"]:
+                s["cb"] = min(2.0 * s["cb"], CB_MAX)
+            s["ov_dual"] = fig["max_overlap"]
             s["since_dual"] = 0
             s["eta"] = max(ETA_MIN, s["eta"] * ETA_F)
 
@@ -189,10 +202,11 @@ class FireAL:
         b = (1.0 - mix) * dt * dt + mix * dt * dt * s["speed_ratio"]
         s["dt_prev"], s["b"] = dt, b
         # rho = C_B max(lambda, lam_fl) per unit of phi / d_ij^p (the kernel divides)
+        cb = s["cb"]
         if s["dual_now"]:  # the multiplier step: lambda + rho phi, penalty off
-            a4, beta = 0.0, C_B
+            a4, beta = 0.0, cb
         else:
-            a4, beta = b * C_B, OMEGA * C_B
+            a4, beta = b * cb, (OMEGA * cb if cb == C_B else 0.0)
         return 1.0 + a, -a, b, a4, beta, self.lam_floor, True, True, VMAX * self.d
 
     # ---- checkpoint ----------------------------------------------------------------------------
@@ -206,4 +220,5 @@ class FireAL:
     def summary(self):
         s = self.s
         return {"phase": s["phase"], "switch_iteration": s["switch_iteration"],
-                "spread": bool(s.get("spread")), "restarts": s["restarts"], "dual_steps": s["dual_steps"]}
+                "spread": bool(s.get("spread")), "restarts": s["restarts"], "dual_steps": s["dual_steps"],
+                "penalty_factor": s["cb"]}

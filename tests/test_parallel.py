@@ -63,6 +63,9 @@ SCENES = {
     "2d-fire-al": (None, ["n=400", "stop.rule=eps", "stop.eps=0", "stop.max_iter=1000"]),
     "3d-fire-al-ns": (None, ["n=400", "dim=3", "method.form=NS", "stop.rule=eps", "stop.eps=0",
                              "stop.max_iter=300"]),
+    # a disordered packing: the penalty factor doubles (4 -> 64) at multiplier steps, the
+    # continuous dual stops
+    "3d-fire-al-penalty": (None, ["n=200", "dim=3", "stop.rule=eps", "stop.eps=0", "stop.max_iter=3000"]),
 }
 
 
@@ -81,6 +84,8 @@ def test_same_bits_on_1_2_3_ranks(run_mpipack, name):
     s1, d1 = runs[1]
     check_dump_consistency(s1, d1)
     assert d1["pairs_gid"].shape[0] > 50, "test set-up: want many contacts at the end"
+    if name == "3d-fire-al-penalty":
+        assert s1["schedule"]["penalty_factor"] > 8, s1["schedule"]
     for P in (2, 3):
         s, d = runs[P]
         assert_bitwise_equal(d1, d, f"{name}: 1 rank vs {P} ranks")
@@ -89,6 +94,7 @@ def test_same_bits_on_1_2_3_ranks(run_mpipack, name):
         assert s["rebalances"] >= 1, s
         if "schedule" in s:  # the dense start was spread into a ball: every sphere migrated
             assert s["schedule"]["spread"] is True, s
+            assert s["schedule"] == s1["schedule"], (P, s["schedule"], s1["schedule"])
         else:  # particles crossed rank boundaries: pair partners had to be fetched from afar
             assert s["far_ghosts"] > 0, s
 
