@@ -305,6 +305,9 @@ def _execute(comm, args, scene, state, out, walltime):
             code = EXIT_CHECKPOINTED
         elif code is None:
             code = exit_code(scene, res)
+            if code == EXIT_NOT_CONVERGED and res["stop_reason"] in ("max_iter", "max_seconds"):
+                # a bound came first: keep the state, so that a larger bound can continue it
+                checkpoints.write(solver)
         summary.update(result_summary(scene, comm, res, wall, args.profile))
     if checkpoints.last_iteration is not None:
         files.append(checkpoints.path)
@@ -394,5 +397,10 @@ def print_result(scene, res, wall, summary_path, code, checkpoints):
         lines.append(f"  stopped by {res['stop_reason']}: checkpoint of iteration "
                      f"{checkpoints.last_iteration} in {checkpoints.path}; continue with "
                      f"mpipack run --restart {os.path.dirname(checkpoints.path)}")
+    elif res["stop_reason"] in ("max_iter", "max_seconds") and checkpoints.last_iteration == res["iterations"]:
+        bound = "stop.max_iter" if res["stop_reason"] == "max_iter" else "stop.max_seconds"
+        lines.append(f"  checkpoint of iteration {checkpoints.last_iteration} in {checkpoints.path}; "
+                     f"continue with mpipack run --restart {os.path.dirname(checkpoints.path)} "
+                     f"--set {bound}=<larger>")
     lines.append(f"  summary: {summary_path}")
     print("\n".join(lines), flush=True)

@@ -170,3 +170,19 @@ def test_coincident_centres_are_separated_the_same_on_any_rank_count(tmp_path):
         assert s["W"] > 1.0, s  # the cloud came apart (W = 0 while every centre coincides)
         dumps[P] = d
     assert_bitwise_equal(dumps[1], dumps[3], "one point: 1 rank vs 3 ranks")
+
+
+def test_a_run_stopped_by_its_iteration_bound_can_be_continued(tmp_path):
+    """Exit 4 at stop.max_iter leaves a checkpoint (nothing computed is lost); restarted with a
+    larger bound on another rank count, the run continues bit for bit as one run to that bound
+    (certificate history and schedule included)."""
+    sets = ["n=300", "seed=2"]
+    p_ref, s_ref, d_ref = run_cli(1, tmp_path / "ref", sets + ["stop.max_iter=900"])
+    assert p_ref.returncode == 4, describe(p_ref)
+    p1, s1, _ = run_cli(1, tmp_path / "run", sets + ["stop.max_iter=400"])
+    assert p1.returncode == 4 and s1["checkpoint"]["iteration"] == 400, describe(p1)
+    assert "checkpoint" in s1 and os.path.exists(s1["checkpoint"]["path"])
+    p2, s2, d2 = run_cli(2, tmp_path / "run", ["stop.max_iter=900"], extra=["--restart", tmp_path / "run" / "out"])
+    assert p2.returncode == 4 and s2["iterations"] == 900, describe(p2)
+    assert_bitwise_equal(d_ref, d2, "400 iterations on 1 rank, then to 900 on 2")
+    assert s2["W"] == s_ref["W"] and s2["certificate"] == s_ref["certificate"]
