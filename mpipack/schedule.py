@@ -77,7 +77,6 @@ MAX_INNER = 3000  # a multiplier step after this many iterations without one (0:
 # that of the step before (the multipliers did not gain on the overlap), up to CB_MAX; the
 # continuous dual step runs only while c_b is at its start
 PEN_GROW, CB_MAX = 0.5, 256.0
-PEN_W = 0.0  # experimental: grow only when W moved by less than this fraction since the last step (0: off)
 PACKING_FRACTION = {1: 1.0, 2: 0.85, 3: 0.64}
 
 
@@ -178,11 +177,9 @@ class FireAL:
         if not was_dual and s["since_dual"] >= MIN_INNER and (s["inner_residual"] <= s["eta"] or stalled):
             s["dual_now"] = True
             s["dual_steps"] += 1
-            w_moved = abs(fig["W"] - s.get("w_dual", math.inf)) / fig["W"] if fig["W"] > 0 else math.inf
-            if fig["max_overlap"] > PEN_GROW * s["ov_dual"] and (PEN_W == 0 or w_moved <= PEN_W):
+            if fig["max_overlap"] > PEN_GROW * s["ov_dual"]:
                 s["cb"] = min(2.0 * s["cb"], CB_MAX)
             s["ov_dual"] = fig["max_overlap"]
-            s["w_dual"] = fig["W"]
             s["since_dual"] = 0
             s["eta"] = max(ETA_MIN, s["eta"] * ETA_F)
 
