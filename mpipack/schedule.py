@@ -27,8 +27,8 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
 
 1. Explosion (only for a start whose first max overlap exceeds 0.5 d): paper DAHA with c = 2,
    gamma = alpha = sqrt(2 theta / S_law), S_law = kappa g2 2b lam_bar (the CFL of the gamma
-   term at the law's row stiffness; the weight of grad W is alpha^2 d^p: p = 2 (S), 1 (NS)), beta = q_e / (a3 T) with T the reduced largest dual gain
-   of a row, q_e = 100 for a dense start, 1 after the spread (the remaining overlaps are
+   term at the law's row stiffness; the weight of grad W is alpha^2 d^p: p = 2 (S), 1 (NS)),
+   beta = q_e / (a3 T) with T the reduced largest dual gain of a row, q_e = 100 for a dense start, 1 after the spread (the remaining overlaps are
    isolated pairs: separate them, do not fling them across the gas); until the max overlap is
    below 0.1 d or W exceeds 10 W_eq (an explosion that overshoots: in 1D it would fly to 1000
    W_eq). Then lambda := 0 and X^{n-1} := X^n.
@@ -201,7 +201,7 @@ class FireAL:
         a = (1.0 - mix) * dt / s["dt_prev"]
         b = (1.0 - mix) * dt * dt + mix * dt * dt * s["speed_ratio"]
         s["dt_prev"], s["b"] = dt, b
-        # rho = C_B max(lambda, lam_fl) per unit of phi / d_ij^p (the kernel divides)
+        # rho = c_b max(lambda, lam_fl) per unit of phi / d_ij^p (the kernel divides)
         cb = s["cb"]
         if s["dual_now"]:  # the multiplier step: lambda + rho phi, penalty off
             a4, beta = 0.0, cb
