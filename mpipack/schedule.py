@@ -28,8 +28,9 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
 1. Explosion (only for a start whose first max overlap exceeds 0.5 d): paper DAHA with c = 2,
    gamma = alpha = sqrt(2 theta / S_law), S_law = kappa g2 2b lam_bar (the CFL of the gamma
    term at the law's row stiffness; the weight of grad W is alpha^2 d^p: p = 2 (S), 1 (NS)),
-   beta = q_e / (a3 T) with T the reduced largest dual gain of a row, q_e = 100 for a dense start, 1 after the spread (the remaining overlaps are
-   isolated pairs: separate them, do not fling them across the gas); until the max overlap is
+   beta = q_e / (a3 T) with T the reduced largest dual gain of a row, q_e = 100 for a dense
+   start, 1 after the spread (the remaining overlaps are isolated pairs: separate them, do not
+   fling them across the gas); until the max overlap is
    below 0.1 d or W exceeds 10 W_eq (an explosion that overshoots: in 1D it would fly to 1000
    W_eq). Then lambda := 0 and X^{n-1} := X^n.
 
