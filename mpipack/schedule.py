@@ -30,9 +30,9 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
    term at the law's row stiffness; the weight of grad W is alpha^2 d^p: p = 2 (S), 1 (NS)),
    beta = q_e / (a3 T) with T the reduced largest dual gain of a row, q_e = 100 for a dense
    start, 1 after the spread (the remaining overlaps are isolated pairs: separate them, do not
-   fling them across the gas); until the max overlap is
-   below 0.1 d or W exceeds 10 W_eq (an explosion that overshoots: in 1D it would fly to 1000
-   W_eq). Then lambda := 0 and X^{n-1} := X^n.
+   fling them across the gas); until the max overlap is below 0.1 d or W exceeds 10 W_eq (an
+   explosion that overshoots: in 1D it would fly to 1000 W_eq). Then lambda := 0 and
+   X^{n-1} := X^n.
 
 2. FIRE on the augmented Lagrangian L_rho (``kernels_fire``, clip form) with per-pair penalty
    rho = c_b max(lambda, lam_fl) / d_ij^p (phi has the units of d^p), lam_fl = f lam_bar; while
