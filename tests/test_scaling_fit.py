@@ -1,0 +1,45 @@
+"""tools/scaling_fit.py: medians over certified runs only, the least-squares exponent, the CLI."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+TOOLS = Path(__file__).resolve().parents[1] / "tools"
+sys.path.insert(0, str(TOOLS))
+import scaling_fit  # noqa: E402
+
+
+def rows_for(dim, law):
+    rows = []
+    for n in (1000, 4000, 16000):
+        for seed, factor in enumerate((0.9, 1.0, 1.1)):
+            rows.append({"n": n, "dim": dim, "seed": seed, "converged": True,
+                         "iterations": factor * law(n), "seconds": factor * law(n) * n * 1e-6})
+        # an uncertified run far off: counted, not in the medians
+        rows.append({"n": n, "dim": dim, "seed": 9, "converged": False, "iterations": 1e9, "seconds": 1e9})
+    return rows
+
+
+def test_medians_and_exponent():
+    rows = rows_for(2, lambda n: 7.0 * n ** 0.5) + rows_for(3, lambda n: 3.0 * n ** 0.8)
+    table = scaling_fit.medians(rows)
+    assert [e[:3] for e in table[2]] == [(1000, 3, 4), (4000, 3, 4), (16000, 3, 4)]
+    assert table[2][0][3] == pytest.approx(7.0 * 1000 ** 0.5)
+    fits = scaling_fit.report(table, 1000, 16000)
+    assert fits[2][0] == pytest.approx(0.5) and fits[2][1] == pytest.approx(1.5)
+    assert fits[3][0] == pytest.approx(0.8)
+    # one size only in the range: no fit
+    assert scaling_fit.report(table, 4000, 4000)[2] == (None, None)
+
+
+def test_cli_writes_the_plot(tmp_path):
+    path = tmp_path / "sweep.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows_for(2, lambda n: n ** 0.5)))
+    png = tmp_path / "scaling.png"
+    proc = subprocess.run([sys.executable, str(TOOLS / "scaling_fit.py"), str(path), "--n-min", "1000",
+                           "--png", str(png)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "iterations ~ N^0.50" in proc.stdout and png.stat().st_size > 10000

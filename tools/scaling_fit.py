@@ -1,0 +1,133 @@
+"""How do iterations and wall time to a certified packing grow with N? Reads the JSON lines of
+`tools/convergence_sweep.py --json FILE` (any number of files, any dimensions), takes per (dim,
+N) the median over the certified runs, fits log(median) = a + k log N by least squares over a
+range of N, prints the exponent k beside the target 1/b (the cluster's diameter in sphere
+diameters grows like N^(1/b)), and draws iterations and seconds against N (log-log, one colour
+per dimension, every run as a dot, medians joined; dotted: the slope N^(1/b) for iterations and
+N^(1 + 1/b) for seconds, an iteration costing ~N).
+
+    python tools/scaling_fit.py SWEEP.jsonl [...] [--n-min 2000] [--n-max 100000] [--png out.png]
+
+Runs that did not certify count in the "certified" column, not in the medians.
+"""
+
+import argparse
+import json
+import math
+import statistics
+import sys
+from collections import defaultdict
+
+
+def read(paths):
+    """Rows of the sweep files (dicts with n, dim, converged, iterations, seconds)."""
+    rows = []
+    for path in paths:
+        with open(path) as f:
+            rows += [json.loads(line) for line in f if line.strip()]
+    return rows
+
+
+def medians(rows):
+    """{dim: [(n, certified, runs, median iterations, median seconds)]}, N ascending; the
+    medians are None when no run of that N certified."""
+    groups = defaultdict(list)
+    for r in rows:
+        groups[(int(r["dim"]), int(r["n"]))].append(r)
+    out = defaultdict(list)
+    for (dim, n), rs in sorted(groups.items()):
+        ok = [r for r in rs if r.get("converged")]
+        its = statistics.median(r["iterations"] for r in ok) if ok else None
+        secs = statistics.median(r["seconds"] for r in ok) if ok else None
+        out[dim].append((n, len(ok), len(rs), its, secs))
+    return dict(out)
+
+
+def fit_exponent(points):
+    """Least-squares slope k and intercept a of log y = a + k log n over (n, y) points (at least
+    two distinct n); None when there are too few."""
+    pts = [(math.log(n), math.log(y)) for n, y in points if y and y > 0]
+    if len({p[0] for p in pts}) < 2:
+        return None
+    mx = sum(p[0] for p in pts) / len(pts)
+    my = sum(p[1] for p in pts) / len(pts)
+    sxx = sum((p[0] - mx) ** 2 for p in pts)
+    k = sum((p[0] - mx) * (p[1] - my) for p in pts) / sxx
+    return k, my - k * mx
+
+
+def report(table, n_min, n_max):
+    """The printed table and fits; returns {dim: (k_iterations, k_seconds)} (None if unfitted)."""
+    fits = {}
+    for dim, entries in sorted(table.items()):
+        print(f"dim {dim}: target exponents: iterations 1/b = {1.0 / dim:.3f}, seconds 1 + 1/b = {1 + 1.0 / dim:.3f}")
+        print("       N  certified  median its  median s")
+        for n, ok, runs, its, secs in entries:
+            its_s = f"{its:10.0f}" if its is not None else "         -"
+            secs_s = f"{secs:9.2f}" if secs is not None else "        -"
+            print(f"{n:8d}  {ok:4d}/{runs:<4d} {its_s} {secs_s}")
+        inside = [e for e in entries if n_min <= e[0] <= n_max and e[3] is not None]
+        k_its = fit_exponent([(e[0], e[3]) for e in inside])
+        k_sec = fit_exponent([(e[0], e[4]) for e in inside])
+        fits[dim] = (k_its[0] if k_its else None, k_sec[0] if k_sec else None)
+        span = f"N in [{n_min}, {n_max}]"
+        if k_its:
+            print(f"  fit over {span} ({len(inside)} sizes): iterations ~ N^{k_its[0]:.2f}, "
+                  f"seconds ~ N^{k_sec[0]:.2f}")
+        else:
+            print(f"  fit over {span}: fewer than two sizes with certified runs")
+    return fits
+
+
+def plot(rows, table, path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    colours = {1: "tab:green", 2: "tab:blue", 3: "tab:red"}
+    for ax, key, col, label, extra in ((axes[0], "iterations", 3, "iterations to a certified packing", 0.0),
+                                       (axes[1], "seconds", 4, "loop seconds", 1.0)):
+        for dim, entries in sorted(table.items()):
+            c = colours.get(dim, "k")
+            ok = [r for r in rows if int(r["dim"]) == dim and r.get("converged")]
+            ax.scatter([r["n"] for r in ok], [r[key] for r in ok], s=10, color=c, alpha=0.35)
+            med = [(e[0], e[col]) for e in entries if e[col] is not None]
+            if med:
+                ax.plot([m[0] for m in med], [m[1] for m in med], "-o", color=c, label=f"{dim}D median")
+                n0, y0 = med[0]
+                n1 = med[-1][0]
+                slope = extra + 1.0 / dim
+                ax.plot([n0, n1], [y0, y0 * (n1 / n0) ** slope], ":", color=c,
+                        label=f"N^({slope:.2f}) from the first")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("N")
+        ax.set_ylabel(label)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    print(f"plot: {path}")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("files", nargs="+")
+    ap.add_argument("--n-min", type=int, default=2000)
+    ap.add_argument("--n-max", type=int, default=100000)
+    ap.add_argument("--png")
+    args = ap.parse_args(argv)
+    rows = read(args.files)
+    if not rows:
+        print("scaling_fit: no runs in the files", file=sys.stderr)
+        return 2
+    table = medians(rows)
+    report(table, args.n_min, args.n_max)
+    if args.png:
+        plot(rows, table, args.png)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
