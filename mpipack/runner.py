@@ -30,6 +30,8 @@ import time
 from . import __version__
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_NUMERICAL, EXIT_NOT_CONVERGED, EXIT_CHECKPOINTED = 0, 1, 2, 3, 4, 5
+# stop reasons of a run that reached its bound before its certificate (exit 4, checkpointed)
+BOUND_STOPS = ("max_iter", "max_seconds")
 EXIT_MEANING = {0: "converged", 1: "internal error", 2: "bad input", 3: "numerical trouble",
                 4: "not converged", 5: "stopped with a checkpoint"}
 
@@ -305,7 +307,7 @@ def _execute(comm, args, scene, state, out, walltime):
             code = EXIT_CHECKPOINTED
         elif code is None:
             code = exit_code(scene, res)
-            if code == EXIT_NOT_CONVERGED and res["stop_reason"] in ("max_iter", "max_seconds"):
+            if code == EXIT_NOT_CONVERGED and res["stop_reason"] in BOUND_STOPS:
                 # a bound came first: keep the state, so that a larger bound can continue it
                 checkpoints.write(solver)
         summary.update(result_summary(scene, comm, res, wall, args.profile))
@@ -397,7 +399,7 @@ def print_result(scene, res, wall, summary_path, code, checkpoints):
         lines.append(f"  stopped by {res['stop_reason']}: checkpoint of iteration "
                      f"{checkpoints.last_iteration} in {checkpoints.path}; continue with "
                      f"mpipack run --restart {os.path.dirname(checkpoints.path)}")
-    elif res["stop_reason"] in ("max_iter", "max_seconds") and checkpoints.last_iteration == res["iterations"]:
+    elif res["stop_reason"] in BOUND_STOPS and checkpoints.last_iteration == res["iterations"]:
         bound = "stop.max_iter" if res["stop_reason"] == "max_iter" else "stop.max_seconds"
         lines.append(f"  checkpoint of iteration {checkpoints.last_iteration} in {checkpoints.path}; "
                      f"continue with mpipack run --restart {os.path.dirname(checkpoints.path)} "

@@ -111,7 +111,6 @@ class Solver:
             self._kernel = kernels.nested_step(m.name, m.form)
         elif m.schedule == "fire-al":
             from . import kernels_fire, schedule
-            p = scene.particles
             self.schedule = schedule.FireAL(self.n, self.dim, init.mean_diameter(scene), m.form)
             self._kernel = kernels_fire.fire_al_step(m.form, self.dim)
         else:
