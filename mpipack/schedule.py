@@ -51,8 +51,10 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
        X^{n+1} - X^n = a (X^n - X^{n-1}) + b G,    G = -grad L_rho,   |step_i| <= vmax d
        a = (1 - mix) dt / dt_prev,   b = (1 - mix) dt^2 + mix dt^2 |V| / (dt |G|)
    power G.V < 0: X^{n-1} := X^n, dt /= 2, mix = 0.1; after 5 positive iterations
-   dt = min(1.1 dt, dt_max), mix *= 0.99; dt_max = sqrt(1 / k_rel), k_rel = K / b with K the
-   reduced largest Gershgorin row of the step (so dt_max tracks the stiffest contact).
+   dt = min(1.1 dt, dt_max), mix *= 0.99; dt_max = 2 / sqrt(k_rel), k_rel = K / b with K the
+   reduced largest Gershgorin row of the step (so dt_max tracks the stiffest contact): the
+   leapfrog bound dt^2 lambda_max < 4 with Gershgorin's k_rel >= lambda_max (a margin of 2 on dt,
+   as before, cost 3 - 8 times more iterations at N = 8000: docs/convergence.md, section 3d).
 
 Fixed points: at a KKT point the clip gives the force multiplier lambda, grad L_rho = grad L =
 0, both dual steps leave lambda unchanged and every step is zero: the fixed points are those of
@@ -78,6 +80,9 @@ MAX_INNER = 3000  # a multiplier step after this many iterations without one (0:
 # that of the step before (the multipliers did not gain on the overlap), up to CB_MAX; the
 # continuous dual step runs only while c_b is at its start
 PEN_GROW, CB_MAX = 0.5, 256.0
+# FIRE's dt_max = DT_LEAPFROG / sqrt(k_rel): the leapfrog's stability bound dt^2 lambda_max < 4
+# with lambda_max bounded by the Gershgorin row k_rel
+DT_LEAPFROG = 2.0
 PACKING_FRACTION = {1: 1.0, 2: 0.85, 3: 0.64}
 
 
@@ -115,7 +120,7 @@ class FireAL:
         s_law = KAPPA * law["g2"] * 2 * dim * law["lam_bar"]
         self.gamma_explode = math.sqrt(2.0 * THETA / s_law)
         k_rel = 1.0 + 2.0 * (4 * dim) * C_B * self.lam_floor * law["g2"] / self.phi_scale
-        dt_max = math.sqrt(1.0 / k_rel)
+        dt_max = DT_LEAPFROG * math.sqrt(1.0 / k_rel)
         self.s = {
             "phase": "start",  # start -> explode -> fire, or start -> fire
             "gain": law["g2"] * 2 * dim,  # T, the largest dual gain of a row (explosion's beta)
@@ -151,7 +156,7 @@ class FireAL:
             return
         b_prev = s["b"]
         k_rel = max(fig["max_row"] / b_prev, 1.0)
-        s["dt_max"] = math.sqrt(1.0 / k_rel)
+        s["dt_max"] = DT_LEAPFROG * math.sqrt(1.0 / k_rel)
         grad = math.sqrt(fig["force2"]) / b_prev  # ||grad L_rho||
         grad_w = math.sqrt(2.0 * fig["W"])
         was_dual = s["dual_now"]

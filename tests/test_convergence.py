@@ -2,6 +2,8 @@
 tools/convergence_sweep.py and docs/convergence.md), and a run that cannot certify says which
 criterion failed and exits 4. Every run is a real command-line run, checked from its dump."""
 
+import csv
+
 import pytest
 
 from conftest import describe, mpipack_run
@@ -50,17 +52,28 @@ def test_a_run_that_cannot_certify_says_why(tmp_path):
 @pytest.mark.parametrize("form", ["S", "NS"])
 def test_the_schedule_does_not_depend_on_the_length_unit(tmp_path, form):
     """The penalty, the dual gains and the explosion's weights carry the units of phi (d^2 for
-    S, d for NS): a scene scaled by a power of two is the same run, scaled (the same
-    iterations, W times the scale squared), and a scene in small units (d = 0.01, once a run
-    that never separated) certifies."""
-    base = ["n=300", f"method.form={form}", "seed=1", "stop.max_iter=20000", "output.snapshots=false"]
-    runs = {}
+    S, d for NS): a scene scaled by a power of two is the same run, scaled (W times the scale
+    squared, overlaps relative to d equal), and a scene in small units (d = 0.01, once a run
+    that never separated) certifies. The exact sums resolve 2^-78 absolutely, not relative to
+    the scene, so the two runs differ in the last bit of W from the first iterations; FIRE's
+    restarts amplify that after ~200 iterations, so the trajectories are compared over the first
+    150 and the packings by their quality."""
+    base = ["n=300", f"method.form={form}", "seed=1", "stop.max_iter=20000", "output.snapshots=false",
+            "output.metrics_every=10"]
+    runs, curves = {}, {}
     for d in (1.0, 1024.0, 0.01):
         (tmp_path / str(d)).mkdir()
         proc, s, _ = mpipack_run(1, tmp_path / str(d), None, base + [f"particles.diameter={d}"])
         assert proc.returncode == 0, describe(proc)
         assert s["converged"] and s["stop_reason"] == "certified", (d, s["certificate"])
         runs[d] = s
-    assert runs[1024.0]["iterations"] == runs[1.0]["iterations"]
-    # (the exact sums drop parts below 2^-78, not scaled with the scene: equal to rounding)
-    assert runs[1024.0]["W"] == pytest.approx(runs[1.0]["W"] * 1024.0 ** 2, rel=1e-12)
+        with open(tmp_path / str(d) / "out" / "metrics.csv") as f:
+            curves[d] = {int(r["iteration"]): (float(r["W"]), float(r["max_overlap"])) for r in csv.DictReader(f)}
+    early = [it for it in curves[1.0] if it <= 150]
+    assert len(early) == 15
+    for it in early:
+        (w1, ov1), (wk, ovk) = curves[1.0][it], curves[1024.0][it]
+        assert wk == pytest.approx(w1 * 1024.0 ** 2, rel=1e-10), it
+        assert ovk == pytest.approx(ov1, rel=1e-10, abs=1e-14), it
+    for d in (1024.0, 0.01):
+        assert runs[d]["W"] / d ** 2 == pytest.approx(runs[1.0]["W"], rel=0.02), d
