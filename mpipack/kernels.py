@@ -366,9 +366,13 @@ def nested_step(method, form):
 # lambda_mode: LAMBDA_STORED uses the stored multipliers; LAMBDA_UPDATE first brings them up
 # to date with X by (2.10b), exactly as the step kernel would, and stores them (the end of a
 # DAHA run: lambda^n of the final X^n); LAMBDA_PEEK uses those updated values without storing
-# them (a check in the middle of a run, which must not change the trajectory).
+# them (a check in the middle of a run, which must not change the trajectory). LAMBDA_FORCE
+# (the fire-al schedule) uses the augmented Lagrangian's force multipliers, the ones the step
+# kernel moves the spheres with, mu = max(0, lambda + pen max(lambda, lam_floor) phi / d_ij^p)
+# (p = 2 for S, 1 for NS), and only on pairs in contact to contact_tol (gap (r - d_ij) / d_ij
+# <= contact_tol; a pair farther apart carries no multiplier), without storing them.
 
-LAMBDA_STORED, LAMBDA_UPDATE, LAMBDA_PEEK = 0, 1, 2
+LAMBDA_STORED, LAMBDA_UPDATE, LAMBDA_PEEK, LAMBDA_FORCE = 0, 1, 2, 3
 # exact rows: KKT2, GW2, the overlap measure sum_{i<j} |B_i ∩ B_j| (each pair once, by the owner of
 # its lower gid) and the spheres' measure sum_i |B_i|, for the paper's A (Definition 4.1)
 MET_KKT2, MET_GW2, MET_OVERLAP_MEASURE, MET_SPHERE_MEASURE = 0, 1, 2, 3
@@ -378,7 +382,8 @@ N_MET_MAX = 3
 
 @njit(cache=True, inline="always")
 def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda, xbar, beta,
-                  lambda_mode, lam_scale, measures_a, acc, maxima, pressure, contacts):
+                  lambda_mode, lam_scale, pen, lam_floor, contact_tol, measures_a, acc, maxima,
+                  pressure, contacts):
     dim = x.shape[1]
     fbuf = exactsum.staging(acc)
     g = np.zeros(dim)
@@ -411,7 +416,15 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
                 r = np.sqrt(r2)
                 phi = dij - r
             lam = pair_lambda[e]
-            if lambda_mode != LAMBDA_STORED:
+            if lambda_mode == LAMBDA_FORCE:
+                unit = 1.0 / (dij * dij) if form == SMOOTH else 1.0 / dij
+                w = lam if lam > lam_floor else lam_floor
+                lam = lam + pen * w * phi * unit
+                if lam < 0.0:
+                    lam = 0.0
+                if r2 > (dij * (1.0 + contact_tol)) ** 2:
+                    lam = 0.0
+            elif lambda_mode != LAMBDA_STORED:
                 lam = lam + beta * phi
                 if lam < 0.0:
                     lam = 0.0
@@ -461,18 +474,23 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
 
 
 @njit(cache=True)
-def metrics_s(x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, area, acc, mx, pressure, contacts):
-    return _pair_metrics(SMOOTH, x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, area, acc, mx, pressure, contacts)
+def metrics_s(x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, pen, floor, tol, area, acc, mx,
+              pressure, contacts):
+    return _pair_metrics(SMOOTH, x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, pen, floor, tol, area,
+                         acc, mx, pressure, contacts)
 
 
 @njit(cache=True)
-def metrics_ns(x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, area, acc, mx, pressure, contacts):
-    return _pair_metrics(NONSMOOTH, x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, area, acc, mx, pressure, contacts)
+def metrics_ns(x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, pen, floor, tol, area, acc, mx,
+              pressure, contacts):
+    return _pair_metrics(NONSMOOTH, x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, pen, floor, tol, area,
+                         acc, mx, pressure, contacts)
 
 
 def pair_metrics(form):
     """The compiled metrics pass for a form (any dimension). Arguments: (x, n_local, diam, gid
-    (n_total,), pair_offsets, pair_j, pair_lambda, xbar, beta, lambda_mode, lam_scale, measures_a (with the
+    (n_total,), pair_offsets, pair_j, pair_lambda, xbar, beta, lambda_mode, lam_scale, pen, lam_floor,
+    contact_tol (LAMBDA_FORCE only), measures_a (with the
     overlap and sphere measures of the paper's A: the costly part, lens areas), acc (4, NBINS+1), maxima
     (N_MET_MAX,), pressure (n_local,), contacts int32 (n_local,)); returns the number of row
     entries with lambda > 0."""

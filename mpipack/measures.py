@@ -26,10 +26,19 @@ def measure(s, finalize=False, empty=False, overlap_a=True):
     compiles the kernel, and still reduces: collective).
 
     KKT residual = ||grad W + sum lambda grad phi|| / ||grad W|| over all spheres (2.4), with
-    the multipliers of (2.4) (NAV's are tau times its own, see (2.6)); pressure likewise.
+    the multipliers of (2.4) (NAV's are tau times its own, see (2.6)); pressure likewise. Under
+    the fire-al schedule's augmented Lagrangian the multipliers are the force multipliers
+    max(0, lambda + rho phi) of pairs in contact to stop.overlap (``schedule.force_multiplier``):
+    the forces the spheres move with, the first-order multiplier estimate that augmented
+    Lagrangian codes test stationarity with; the stored lambda is only the last dual step's.
     """
     st = s.state
-    if st.lambda_fresh:
+    pen = floor = 0.0
+    if s.schedule is not None and s.schedule.phase == "fire":
+        # the augmented Lagrangian's multipliers: the forces the next pass applies
+        mode = kernels.LAMBDA_FORCE
+        pen, floor = s.schedule.force_multiplier()
+    elif st.lambda_fresh:
         mode = kernels.LAMBDA_STORED
     else:
         mode = kernels.LAMBDA_UPDATE if finalize else kernels.LAMBDA_PEEK
@@ -39,7 +48,8 @@ def measure(s, finalize=False, empty=False, overlap_a=True):
     pressure = np.zeros(st.n_local)
     contacts = np.zeros(st.n_local, dtype=np.int32)
     n_active = s._metrics_kernel(st.x, 0 if empty else st.n_local, st.diam, st.gid, st.pair_offsets, st.pair_j,
-                                 st.pair_lambda, s.xbar, s.beta, mode, s.kkt_lambda_scale, overlap_a,
+                                 st.pair_lambda, s.xbar, s.beta, mode, s.kkt_lambda_scale, pen, floor,
+                                 s.scene.stop.overlap, overlap_a,
                                  red.acc("met"), red.maxima("met"), pressure, contacts)
     if mode == kernels.LAMBDA_UPDATE:
         st.lambda_fresh = True

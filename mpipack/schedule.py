@@ -58,7 +58,10 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
 
 Fixed points: at a KKT point the clip gives the force multiplier lambda, grad L_rho = grad L =
 0, both dual steps leave lambda unchanged and every step is zero: the fixed points are those of
-the paper (Proposition 2.4). The certificate uses the stored multipliers.
+the paper (Proposition 2.4). The certificate's multipliers are the force multipliers
+max(0, lambda + rho phi) of the pairs in contact to the overlap tolerance (``force_multiplier``;
+the first-order estimate of augmented Lagrangian codes): the stored lambda lags a multiplier
+step behind, so that between two steps a converged inner solve could not be certified.
 """
 
 import math
@@ -214,6 +217,12 @@ class FireAL:
         else:
             a4, beta = b * cb, (OMEGA * cb if cb == C_B else 0.0)
         return 1.0 + a, -a, b, a4, beta, self.lam_floor, True, True, VMAX * self.d
+
+    def force_multiplier(self):
+        """(pen, lam_floor) of the force multipliers mu = max(0, lambda + pen max(lambda,
+        lam_floor) phi / d_ij^p) that the next pass moves the spheres with (the certificate's
+        multipliers): the augmented Lagrangian's first-order estimate."""
+        return self.s["cb"], self.lam_floor
 
     # ---- checkpoint ----------------------------------------------------------------------------
     def save(self):

@@ -298,7 +298,7 @@ class Solver:
         fig["iteration"] = st.iteration
         if self.schedule is not None:
             if self.schedule.phase == "fire":
-                st.lambda_fresh = True  # the certificate uses the stored multipliers
+                st.lambda_fresh = True  # lambda is the last dual step's (the certificate: measures)
             self.schedule.observe(fig)
         return fig
 

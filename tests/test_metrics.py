@@ -5,6 +5,7 @@ import csv
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from conftest import describe
 
@@ -41,3 +42,41 @@ def test_metrics_rows_approach_the_optimum_and_are_rank_independent(run_mpipack)
                 if col != "wall_seconds":
                     assert a[col] == b[col], (P, col, a[col], b[col])
     assert np.isfinite([float(r["wall_seconds"]) for r in r1]).all()
+
+
+def _two_sphere_kkt(form, r, lam, pen, floor, tol):
+    """The metrics pass on two spheres of diameter 1 at distance r on the x axis (Xbar = 0)
+    with stored multiplier lam, in the force-multiplier mode: (KKT residual, pressure)."""
+    from mpipack import exactsum, kernels
+    x = np.array([[-r / 2, 0.0], [r / 2, 0.0]])
+    diam = np.ones(2)
+    po = np.array([0, 1, 2], dtype=np.int64)
+    pj = np.array([1, 0], dtype=np.int64)
+    pl = np.array([lam, lam])
+    acc = exactsum.new_accumulator(4)
+    mx = np.zeros(kernels.N_MET_MAX)
+    pressure, contacts = np.zeros(2), np.zeros(2, dtype=np.int32)
+    kernels.pair_metrics(form)(x, 2, diam, np.arange(2), po, pj, pl, np.zeros(2), 0.0, kernels.LAMBDA_FORCE,
+                               1.0, pen, floor, tol, False, acc, mx, pressure, contacts)
+    kkt2, gw2 = exactsum.value(acc, 0), exactsum.value(acc, 1)
+    return float(np.sqrt(kkt2 / gw2)), pressure[0]
+
+
+def test_the_certificate_uses_the_force_multipliers_of_pairs_in_contact():
+    """Under fire-al the certificate's multipliers are mu = max(0, lambda + pen max(lambda,
+    floor) phi / d^p), the forces the spheres move with, and a pair whose gap exceeds the
+    tolerance carries none. Two spheres of diameter 1, S form: grad W at sphere 1 is r/2,
+    grad phi is -2 r, so mu = 1/4 balances them exactly."""
+    r = 0.9995  # overlapping by 5e-4 d: phi = 1 - r^2
+    pen, floor = 4.0, 0.3
+    stored = lambda r: 0.25 - pen * floor * (1.0 - r * r)  # below the floor: weight = floor
+    kkt, mu = _two_sphere_kkt("S", r, stored(r), pen, floor, 1e-3)
+    assert mu == pytest.approx(0.25, rel=1e-12) and kkt < 1e-12
+    # the stored multiplier alone would not balance the pull
+    assert abs(stored(r) - 0.25) / 0.25 > 1e-3
+    # a pair 2e-3 d apart: no contact, no force, the residual is all of grad W
+    kkt, mu = _two_sphere_kkt("S", 1.002, stored(1.002), pen, floor, 1e-3)
+    assert mu == 0.0 and kkt == pytest.approx(1.0, rel=1e-12)
+    # within the tolerance (a gap of 5e-4 d) it counts
+    kkt, mu = _two_sphere_kkt("S", 1.0005, stored(1.0005), pen, floor, 1e-3)
+    assert mu == pytest.approx(0.25, rel=1e-12) and kkt < 1e-12

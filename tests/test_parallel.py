@@ -36,6 +36,26 @@ def brute_force_figures(d):
     return w, max(float(ov.max()), 0.0)
 
 
+def force_pairs(summary, d):
+    """Pairs that carry a force multiplier of the fire-al certificate, from a dump (brute force):
+    mu = max(0, lambda + pen max(lambda, floor) phi / d^p) > 0 and a gap within the overlap
+    tolerance."""
+    from mpipack import schedule
+    x, diam, n = d["x"], d["diam"], d["x"].shape[0]
+    form = summary["form"]
+    law = schedule.packing_law(n, summary["dim"], 0.5 * (diam.min() + diam.max()), form)
+    floor, pen = schedule.FLOOR * law["lam_bar"], summary["schedule"]["penalty_factor"]
+    tol = summary["certificate"]["overlap"]["tol"]
+    lam = np.zeros((n, n))
+    lam[d["pairs_gid"][:, 0], d["pairs_gid"][:, 1]] = d["pairs_lambda"]
+    r = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(axis=2))
+    dij = 0.5 * (diam[:, None] + diam[None, :])
+    phi_unit = (dij * dij - r * r) / (dij * dij) if form == "S" else (dij - r) / dij
+    mu = np.maximum(0.0, lam + pen * np.maximum(lam, floor) * phi_unit)
+    mu[r > dij * (1.0 + tol)] = 0.0
+    return int(np.count_nonzero(np.triu(mu, 1)))
+
+
 def check_dump_consistency(summary, d):
     n = summary["n"]
     assert np.array_equal(d["gid"], np.arange(n))
@@ -44,7 +64,10 @@ def check_dump_consistency(summary, d):
     assert pg.ndim == 2 and pg.shape[1] == 2 and np.all(pg[:, 0] < pg[:, 1])
     assert np.all(d["pairs_lambda"] > 0)
     assert len({tuple(p) for p in pg.tolist()}) == pg.shape[0], "duplicate pairs in the dump"
-    assert summary["active_pairs"] == pg.shape[0]
+    if summary["parameters"].get("schedule") == "fire-al" and summary["schedule"]["phase"] == "fire":
+        assert summary["active_pairs"] == force_pairs(summary, d)
+    else:
+        assert summary["active_pairs"] == pg.shape[0]
     w, ov = brute_force_figures(d)
     assert summary["W"] == pytest.approx(w, rel=1e-10)
     assert summary["max_overlap"] == pytest.approx(ov, rel=1e-9, abs=1e-15)
