@@ -75,7 +75,11 @@ W_SWITCH = 10.0  # ... or once W exceeds this multiple of the law's W (an oversh
 SPREAD = math.sqrt(6.0)
 Q_GENTLE = 1.0  # the explosion's gain once the start is a dilute ball: separate pairs, no kicks
 # augmented Lagrangian and FIRE
-C_B, FLOOR, OMEGA, VMAX = 4.0, 3.0, 0.01, 0.02
+# OMEGA: the continuous dual step's gain; 0.02 hardens a contact in ~50 iterations, before the
+# sliding spheres of a large packed core (up to 0.02 d per iteration) have left it (0.01: 2D
+# N = 8000 cores flowed for 8000 iterations at overlaps of 0.1 - 0.2 d; 0.03: 3D N = 2000 jammed
+# looser, 3x slower; 0.1: chatter, 10x the restarts; docs/convergence.md, section 3d)
+C_B, FLOOR, OMEGA, VMAX = 4.0, 3.0, 0.02, 0.02
 N_DELAY, F_INC, F_DEC, MIX0, F_MIX, DT0_FRAC = 5, 1.1, 0.5, 0.1, 0.99, 0.1
 ETA0, ETA_F, ETA_MIN, MIN_INNER = 0.3, 0.5, 0.003, 20
 MAX_INNER = 3000  # a multiplier step after this many iterations without one (0: never forced)
