@@ -51,6 +51,9 @@ def run_one(n, seed, args):
             "iterations": s.get("iterations"),
             "seconds": round(s.get("wall_seconds", wall), 2),
             "explosion_iterations": sched.get("switch_iteration"),
+            # the schedule's state at the end: multiplier steps, FIRE restarts, penalty factor
+            "dual_steps": sched.get("dual_steps"), "restarts": sched.get("restarts"),
+            "penalty_factor": sched.get("penalty_factor"),
             "W_over_N2": s["W"] / n ** 2 if "W" in s else None,
             "max_overlap": cert.get("overlap", {}).get("value"),
             "kkt": cert.get("kkt", {}).get("value"),
