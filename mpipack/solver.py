@@ -111,7 +111,8 @@ class Solver:
             self._kernel = kernels.nested_step(m.name, m.form)
         elif m.schedule == "fire-al":
             from . import kernels_fire, schedule
-            self.schedule = schedule.FireAL(self.n, self.dim, init.mean_diameter(scene), m.form)
+            self.schedule = schedule.FireAL(self.n, self.dim, init.mean_diameter(scene), m.form,
+                                             overlap_tol=scene.stop.overlap)
             self._kernel = kernels_fire.fire_al_step(m.form, self.dim)
         else:
             self.coeffs = kernels.coefficients(m.name, m.alpha, m.beta, m.gamma, m.c)

@@ -1,0 +1,84 @@
+"""The fire-al schedule's decisions on synthetic reduced figures (no kernels, no MPI): when a
+multiplier step is forced, when it is held back, and how far the penalty factor grows."""
+
+import math
+
+from mpipack import schedule
+
+
+def fire_schedule(overlap_tol=1e-3):
+    """A 2D N = 2000 schedule whose start needs no explosion: phase "fire" after one figure."""
+    sch = schedule.FireAL(2000, 2, 1.0, "S", overlap_tol=overlap_tol)
+    sch.observe(figure(sch, iteration=1, max_overlap=0.01))
+    assert sch.phase == "fire"
+    sch.take_pending()
+    return sch
+
+
+def figure(sch, iteration, max_overlap, residual=0.5):
+    """Reduced figures of one iteration with inner residual ``residual`` (||grad L|| /
+    ||grad W||) and positive power (no FIRE restart)."""
+    w = sch.w_eq
+    b = sch.s["b"]
+    grad = residual * math.sqrt(2.0 * w)
+    return {"iteration": iteration, "max_gain": 1.0, "max_row": 10.0 * b, "power": 1.0,
+            "force2": (grad * b) ** 2, "change2": 1e-6, "W": w, "max_overlap": max_overlap}
+
+
+def run_until_step(sch, first, max_overlap, limit):
+    """Iterations first, first + 1, ... until a multiplier step is taken; its iteration or None."""
+    for it in range(first, first + limit):
+        sch.coefficients()
+        sch.observe(figure(sch, it, max_overlap))
+        if sch.s["dual_now"]:
+            return it
+    return None
+
+
+def test_the_first_forced_step_waits_for_the_fall_and_the_soft_phase():
+    sch = fire_schedule()
+    wait = schedule.FIRST_INNER + sch.fall_iterations
+    step = run_until_step(sch, 2, 0.01, wait + 10)
+    assert step is not None and step - 1 == wait, (step, wait)
+    # the next one is forced MAX_INNER iterations later
+    step2 = run_until_step(sch, step + 1, 0.01, schedule.MAX_INNER + 10)
+    assert step2 - step == schedule.MAX_INNER, (step, step2)
+
+
+def test_no_step_is_forced_while_the_overlap_is_within_the_hold():
+    sch = fire_schedule(overlap_tol=1e-3)
+    held = 0.9 * schedule.HOLD_OVERLAP * 1e-3
+    wait = schedule.FIRST_INNER + sch.fall_iterations
+    assert run_until_step(sch, 2, held, 3 * wait) is None
+    # the same run with the overlap above the hold takes the forced step at once
+    it = 2 + 3 * wait
+    assert run_until_step(sch, it, 2.0 * schedule.HOLD_OVERLAP * 1e-3, 2) == it
+    # the hold follows the stop's tolerance: at 1e-4 the same overlap is no longer held
+    tight = fire_schedule(overlap_tol=1e-4)
+    assert run_until_step(tight, 2, held, wait + 10) is not None
+
+
+def test_a_converged_inner_solve_steps_whatever_the_overlap():
+    sch = fire_schedule()
+    for it in range(2, 2 + schedule.MIN_INNER + 1):
+        sch.coefficients()
+        fig = figure(sch, it, 1e-5, residual=0.1 * sch.s["eta"])
+        sch.observe(fig)
+        if sch.s["dual_now"]:
+            break
+    assert sch.s["dual_now"] and sch.s["dual_steps"] == 1
+
+
+def test_the_penalty_factor_doubles_while_the_overlap_does_not_halve_up_to_its_cap():
+    sch = fire_schedule()
+    it = 2
+    factors = []
+    for _ in range(12):
+        step = run_until_step(sch, it, 0.01, schedule.FIRST_INNER + sch.fall_iterations + 10)
+        assert step is not None
+        factors.append(sch.s["cb"])
+        it = step + 1
+    assert factors[0] == schedule.C_B  # the first step has no step before it to compare with
+    assert factors[1] == 2 * schedule.C_B
+    assert max(factors) == schedule.CB_MAX == 1024.0
+    assert factors == sorted(factors)
