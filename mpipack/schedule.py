@@ -95,7 +95,7 @@ MAX_INNER, FIRST_INNER, HOLD_OVERLAP = 1500, 3000, 0.5
 # the penalty factor c_b doubles at a multiplier step whose max overlap is above PEN_GROW times
 # that of the step before (the multipliers did not gain on the overlap), up to CB_MAX; the
 # continuous dual step runs only while c_b is at its start
-# (1024: a multiplier step at overlap delta changes the pair's multiplier by 2 c_b delta lambda, so
+# (1024: a multiplier step at overlap delta changes the pair's multiplier by 2 c_b delta lambda (S), so
 # that at 256 the certificate's 1e-3 d needed the creeping glass's contact forces to settle to
 # within half between two steps; 3D N = 8000 certified 1 run of 3 at 256)
 PEN_GROW, CB_MAX = 0.5, 1024.0

@@ -306,7 +306,7 @@ def cases(quick):
              ["n=7", "dim=2", "init.sigma=1.0", "method.form=\"S\"", "method.alpha=0.04", "method.beta=0.15",
               f"method.gamma={0.9 * g_edge!r}"], allowed=("detected",), max_iter=60000, max_seconds=60),
         Case("spread start no contacts", "certified (falls together)",
-             ["n=200", "dim=2", "init.sigma=200.0"], allowed=("certified",), max_iter=40000, max_seconds=60),
+             ["n=200", "dim=2", "init.sigma=200.0"], allowed=("certified",), max_iter=60000, max_seconds=60),
         Case("spread start, fixed parameters", "certified or detected (it collapses and bounces back "
              "with a period of ~6000 iterations)", SWEEP_BASE + ["n=200", "init.sigma=200.0"], max_iter=40000,
              max_seconds=60),
