@@ -44,8 +44,8 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
    ball, ~2 (SPREAD - 1) R / VMAX iterations, is over), unless the max overlap is already within
    HOLD_OVERLAP times the stop's overlap tolerance: then the multipliers do what they are for,
    and what remains is the inner solve's stationarity, which a forced step would only disturb.
-   At an ALM step whose max overlap is above half that of the
-   step before (the multipliers did not gain on the overlap), c_b doubles (up to 1024) and the
+   At an ALM step whose max overlap is above half that of the step before (the multipliers did
+   not gain on the overlap), c_b doubles (up to 1024) and the
    continuous dual stops: in a disordered packing (3D, mixed sizes) the soft penalty lets
    contacts slide and rearrange after every multiplier step, and the continuous dual's small
    kicks keep the inner problem from settling; a stiffer penalty freezes the contact network so
@@ -95,9 +95,9 @@ MAX_INNER, FIRST_INNER, HOLD_OVERLAP = 1500, 3000, 0.5
 # the penalty factor c_b doubles at a multiplier step whose max overlap is above PEN_GROW times
 # that of the step before (the multipliers did not gain on the overlap), up to CB_MAX; the
 # continuous dual step runs only while c_b is at its start
-# (1024: a multiplier step at overlap delta changes the pair's multiplier by 2 c_b delta lambda (S), so
-# that at 256 the certificate's 1e-3 d needed the creeping glass's contact forces to settle to
-# within half between two steps; 3D N = 8000 certified 1 run of 3 at 256)
+# (1024: a multiplier step at overlap delta changes the pair's multiplier by 2 c_b delta lambda
+# (S), so that at 256 the certificate's 1e-3 d needed the creeping glass's contact forces to
+# settle to within half between two steps; 3D N = 8000 certified 1 run of 3 at 256)
 PEN_GROW, CB_MAX = 0.5, 1024.0
 # FIRE's dt_max = DT_LEAPFROG / sqrt(k_rel): the leapfrog's stability bound dt^2 lambda_max < 4
 # with lambda_max bounded by the Gershgorin row k_rel
@@ -122,9 +122,10 @@ class FireAL:
     # coefficients of a pass that moves nothing (compiling the kernel at set-up)
     NO_STEP = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, False, False, 0.0)
 
-    def __init__(self, n, dim, d, form, overlap_tol=1e-3):
+    def __init__(self, n, dim, d, form, *, overlap_tol):
         law = packing_law(n, dim, d, form)
-        # no forced multiplier step while the max overlap is below this (relative to d_kl)
+        # no forced multiplier step while the max overlap (relative to d_kl) is below this;
+        # overlap_tol is the scene's stop.overlap
         self.hold_overlap = HOLD_OVERLAP * overlap_tol
         self.d, self.dim, self.w_eq = d, dim, law["W"]
         # phi has the units of d^p (S: p = 2, NS: p = 1) and lambda those of W / d^p: the
@@ -201,7 +202,8 @@ class FireAL:
         # the fall from the spread ball (twice ~(SPREAD - 1) R / VMAX iterations at the speed
         # cap); none while the overlap is within the hold (only stationarity is missing)
         wait = MAX_INNER if s["dual_steps"] >= 1 else FIRST_INNER + self.fall_iterations
-        stalled = MAX_INNER > 0 and s["since_dual"] >= wait and fig["max_overlap"] > self.hold_overlap
+        stalled = (MAX_INNER > 0 and s["since_dual"] >= wait
+                   and fig["max_overlap"] > self.hold_overlap)
         if not was_dual and s["since_dual"] >= MIN_INNER and (s["inner_residual"] <= s["eta"] or stalled):
             s["dual_now"] = True
             s["dual_steps"] += 1

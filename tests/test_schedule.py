@@ -25,11 +25,11 @@ def figure(sch, iteration, max_overlap, residual=0.5):
             "force2": (grad * b) ** 2, "change2": 1e-6, "W": w, "max_overlap": max_overlap}
 
 
-def run_until_step(sch, first, max_overlap, limit):
+def run_until_step(sch, first, max_overlap, limit, residual=0.5):
     """Iterations first, first + 1, ... until a multiplier step is taken; its iteration or None."""
     for it in range(first, first + limit):
         sch.coefficients()
-        sch.observe(figure(sch, it, max_overlap))
+        sch.observe(figure(sch, it, max_overlap, residual))
         if sch.s["dual_now"]:
             return it
     return None
@@ -60,12 +60,7 @@ def test_no_step_is_forced_while_the_overlap_is_within_the_hold():
 
 def test_a_converged_inner_solve_steps_whatever_the_overlap():
     sch = fire_schedule()
-    for it in range(2, 2 + schedule.MIN_INNER + 1):
-        sch.coefficients()
-        fig = figure(sch, it, 1e-5, residual=0.1 * sch.s["eta"])
-        sch.observe(fig)
-        if sch.s["dual_now"]:
-            break
+    run_until_step(sch, 2, 1e-5, schedule.MIN_INNER + 1, residual=0.1 * sch.s["eta"])
     assert sch.s["dual_now"] and sch.s["dual_steps"] == 1
 
 
