@@ -81,7 +81,8 @@ def progress_printer(scene, comm, every, stream=None):
 
 
 METRIC_COLUMNS = ("iteration", "wall_seconds", "relative_change", "max_overlap", "A", "W",
-                  "W_minus_optimum", "kkt_residual", "complementarity", "active_pairs")
+                  "W_minus_optimum", "kkt_residual", "complementarity", "active_pairs",
+                  "force_imbalance")
 
 
 def metrics_recorder(scene, comm, path, every, resume_after=None):
@@ -90,8 +91,10 @@ def metrics_recorder(scene, comm, path, every, resume_after=None):
     file ``path`` by rank 0. The error measures: relative change (4.3), max overlap relative
     to d_kl, the paper's mean overlap proportion A (Definition 4.1), W and W minus
     output.w_optimum when the scene gives one, the KKT residual, complementarity
-    max lambda |phi|, active pairs. With ``resume_after`` (a restart from that iteration) the
-    file keeps its rows up to that iteration and continues. Returns a Hook."""
+    max lambda |phi|, active pairs, and the force imbalance (the KKT residual's net forces
+    relative to the contact forces, ``measures.measure``). With ``resume_after`` (a restart
+    from that iteration) the file keeps its rows up to that iteration and continues. Returns a
+    Hook."""
     from . import measures
     optimum = scene.output.w_optimum
     state = {"last": None}
@@ -114,7 +117,7 @@ def metrics_recorder(scene, comm, path, every, resume_after=None):
         row = (ctx.iteration, ctx.elapsed, ctx.figures.get("relative_change", float("nan")),
                m["max_overlap"], m["overlap_A"], m["W"],
                m["W"] - optimum if optimum is not None else float("nan"),
-               m["kkt_residual"], m["complementarity"], m["active_pairs"])
+               m["kkt_residual"], m["complementarity"], m["active_pairs"], m["force_imbalance"])
         with open(path, "a") as f:
             f.write(",".join(repr(v) if isinstance(v, float) else str(v) for v in row) + "\n")
         return None

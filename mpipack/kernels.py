@@ -358,7 +358,9 @@ def nested_step(method, form):
 # ---- metrics of a configuration and its multipliers (one pass, on demand) ---------------------
 #
 # For each local particle i, with g_i = grad_{X_i} L = (X_i - Xbar) + sum_j lambda_ij grad_{X_i} phi_ij:
-#   exact rows  KKT2 = sum_i |g_i|^2,  GW2 = sum_i |X_i - Xbar|^2 (= |grad W|^2 = 2 W)
+#   exact rows  KKT2 = sum_i |g_i|^2,  GW2 = sum_i |X_i - Xbar|^2 (= |grad W|^2 = 2 W),
+#               CF2 = sum_i c_i^2, c_i = sum_j lambda_ij |grad_{X_i} phi_ij| (the magnitudes of
+#               the contact forces on sphere i, the scale of the force balance g_i = 0)
 #   maxima      max overlap (d_ij - r)/d_ij, complementarity max lambda_ij |phi_ij|, max lambda_ij
 #   per particle pressure mu_i = sum_j lambda_ij (paper, Fig. 9) and active contacts
 # lam_scale turns the stored multipliers into those of the KKT system (2.4): 1 for DAHA, AHA
@@ -375,7 +377,8 @@ def nested_step(method, form):
 LAMBDA_STORED, LAMBDA_UPDATE, LAMBDA_PEEK, LAMBDA_FORCE = 0, 1, 2, 3
 # exact rows: KKT2, GW2, the overlap measure sum_{i<j} |B_i ∩ B_j| (each pair once, by the owner of
 # its lower gid) and the spheres' measure sum_i |B_i|, for the paper's A (Definition 4.1)
-MET_KKT2, MET_GW2, MET_OVERLAP_MEASURE, MET_SPHERE_MEASURE = 0, 1, 2, 3
+MET_KKT2, MET_GW2, MET_OVERLAP_MEASURE, MET_SPHERE_MEASURE, MET_CF2 = 0, 1, 2, 3, 4
+N_MET_EXACT = 5
 MET_OVERLAP, MET_COMPL, MET_LAMBDA = 0, 1, 2
 N_MET_MAX = 3
 
@@ -399,6 +402,7 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
             g[k] = x[i, k] - xbar[k]
             gw2 += g[k] * g[k]
         mu = 0.0
+        cf = 0.0
         nc = 0
         di = diam[i]
         lens = 0.0
@@ -449,9 +453,11 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
                 if lam > max_lam:
                     max_lam = lam
                 if form == SMOOTH:
+                    cf += 2.0 * lam * np.sqrt(r2)
                     for k in range(dim):
                         g[k] -= 2.0 * lam * d[k]
                 elif r > 0.0:
+                    cf += lam
                     for k in range(dim):
                         g[k] -= lam * d[k] / r
         kkt2 = 0.0
@@ -459,6 +465,7 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
             kkt2 += g[k] * g[k]
         exactsum.add(fbuf, acc, MET_KKT2, kkt2)
         exactsum.add(fbuf, acc, MET_GW2, gw2)
+        exactsum.add(fbuf, acc, MET_CF2, cf * cf)
         exactsum.add(fbuf, acc, MET_OVERLAP_MEASURE, lens)
         if measures_a:
             exactsum.add(fbuf, acc, MET_SPHERE_MEASURE, metrics.ball_volume(dim, 0.5 * di))
@@ -491,7 +498,7 @@ def pair_metrics(form):
     """The compiled metrics pass for a form (any dimension). Arguments: (x, n_local, diam, gid
     (n_total,), pair_offsets, pair_j, pair_lambda, xbar, beta, lambda_mode, lam_scale, pen, lam_floor,
     contact_tol (LAMBDA_FORCE only), measures_a (with the
-    overlap and sphere measures of the paper's A: the costly part, lens areas), acc (4, NBINS+1), maxima
+    overlap and sphere measures of the paper's A: the costly part, lens areas), acc (5, NBINS+1), maxima
     (N_MET_MAX,), pressure (n_local,), contacts int32 (n_local,)); returns the number of row
     entries with lambda > 0."""
     return metrics_s if form == "S" else metrics_ns

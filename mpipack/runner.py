@@ -356,6 +356,7 @@ def result_summary(scene, comm, res, wall, profile):
         "stop_reason": res["stop_reason"], "certificate": res["certificate"],
         "wall_seconds": wall, "relative_change": res["relative_change"],
         "max_overlap": res["max_overlap"], "W": res["W"], "kkt_residual": res["kkt_residual"],
+        "force_imbalance": res["force_imbalance"],
         "complementarity": res["complementarity"], "overlap_A": res["overlap_A"],
         "density": res["density"] if density_valid(scene, res) else None,
         "density_radius": res["density_radius"],
@@ -393,7 +394,8 @@ def print_result(scene, res, wall, summary_path, code, checkpoints):
     lines = [f"mpipack: {verdict(scene, res)} after {res['iterations']} iterations in {wall:.2f} s "
              f"({res['particle_iterations_per_second']:.3g} particle-iterations/s)",
              f"  {certificate_line(res['certificate'])}",
-             f"  relative change {res['relative_change']:.3e}, W = {res['W']:.10g}",
+             f"  relative change {res['relative_change']:.3e}, W = {res['W']:.10g}, force imbalance "
+             f"{res['force_imbalance']:.3e} (net force / contact forces)",
              f"  {density_line(scene, res)}"]
     if code == EXIT_CHECKPOINTED:
         lines.append(f"  stopped by {res['stop_reason']}: checkpoint of iteration "

@@ -53,7 +53,7 @@ def _two_sphere_kkt(form, r, lam, pen, floor, tol):
     po = np.array([0, 1, 2], dtype=np.int64)
     pj = np.array([1, 0], dtype=np.int64)
     pl = np.array([lam, lam])
-    acc = exactsum.new_accumulator(4)
+    acc = exactsum.new_accumulator(kernels.N_MET_EXACT)
     mx = np.zeros(kernels.N_MET_MAX)
     pressure, contacts = np.zeros(2), np.zeros(2, dtype=np.int32)
     kernels.pair_metrics(form)(x, 2, diam, np.arange(2), po, pj, pl, np.zeros(2), 0.0, kernels.LAMBDA_FORCE,
@@ -80,3 +80,33 @@ def test_the_certificate_uses_the_force_multipliers_of_pairs_in_contact():
     # within the tolerance (a gap of 5e-4 d) it counts
     kkt, mu = _two_sphere_kkt("S", 1.0005, stored(1.0005), pen, floor, 1e-3)
     assert mu == pytest.approx(0.25, rel=1e-12) and kkt < 1e-12
+
+
+@pytest.mark.parametrize("form", ["S", "NS"])
+def test_force_imbalance_is_the_net_force_over_the_contact_forces(form):
+    """Two spheres of diameter 1 at distance r on the x axis (Xbar = 0) whose multiplier
+    carries half the force that balances the pull of W (r/2 at each sphere): the net force is
+    r/4 and the contact force r/4, so the force imbalance is 1 and the KKT residual 1/2; with
+    the balancing multiplier both are 0; with none the imbalance is infinite (no contact force)."""
+    from mpipack import exactsum, kernels
+    r = 0.999
+    x = np.array([[-r / 2, 0.0], [r / 2, 0.0]])
+    po, pj = np.array([0, 1, 2], dtype=np.int64), np.array([1, 0], dtype=np.int64)
+    grad_phi = 2 * r if form == "S" else 1.0  # |grad phi| at distance r
+
+    def figures(lam):
+        acc = exactsum.new_accumulator(kernels.N_MET_EXACT)
+        mx = np.zeros(kernels.N_MET_MAX)
+        kernels.pair_metrics(form)(x, 2, np.ones(2), np.arange(2), po, pj, np.array([lam, lam]),
+                                   np.zeros(2), 0.0, kernels.LAMBDA_STORED, 1.0, 0.0, 0.0, 1e-3, False,
+                                   acc, mx, np.zeros(2), np.zeros(2, dtype=np.int32))
+        kkt2, gw2, cf2 = (exactsum.value(acc, k) for k in (kernels.MET_KKT2, kernels.MET_GW2, kernels.MET_CF2))
+        return np.sqrt(kkt2 / gw2), (np.sqrt(kkt2 / cf2) if cf2 > 0 else np.inf)
+
+    balancing = (r / 2) / grad_phi
+    kkt, imbalance = figures(balancing / 2)
+    assert kkt == pytest.approx(0.5, rel=1e-12) and imbalance == pytest.approx(1.0, rel=1e-12)
+    kkt, imbalance = figures(balancing)
+    assert kkt < 1e-12 and imbalance < 1e-12
+    kkt, imbalance = figures(0.0)
+    assert kkt == pytest.approx(1.0, rel=1e-12) and imbalance == np.inf
