@@ -36,7 +36,7 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
 
 2. FIRE on the augmented Lagrangian L_rho (``kernels_fire``, clip form) with per-pair penalty
    rho = c_b max(lambda, lam_fl) / d_ij^p (phi has the units of d^p), lam_fl = f lam_bar; while
-   c_b is at its start (4), a continuous dual step lambda <- max(0, lambda + omega rho phi)
+   c_b is at its start (4 in 1D and 2D, 16 in 3D), a continuous dual step lambda <- max(0, lambda + omega rho phi)
    every iteration; a multiplier (ALM) step lambda <- max(0, lambda + rho phi) (one pass, penalty
    off) when the inner residual r_in = ||grad L_rho|| / ||grad W|| <= eta (eta from 0.3, halved
    at each ALM step, floor 0.003) and at least 20 iterations since the last, or after MAX_INNER
@@ -45,11 +45,13 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
    HOLD_OVERLAP times the stop's overlap tolerance: then the multipliers do what they are for,
    and what remains is the inner solve's stationarity, which a forced step would only disturb.
    At an ALM step whose max overlap is above half that of the step before (the multipliers did
-   not gain on the overlap), c_b doubles (up to 1024) and the
+   not gain on the overlap), c_b doubles (x8 in 3D; up to 1024) and the
    continuous dual stops: in a disordered packing (3D, mixed sizes) the soft penalty lets
    contacts slide and rearrange after every multiplier step, and the continuous dual's small
    kicks keep the inner problem from settling; a stiffer penalty freezes the contact network so
-   that the multiplier steps converge (docs/convergence.md, section 3c).
+   that the multiplier steps converge (docs/convergence.md, section 3c). A 3D packing is a glass
+   whatever the soft phase does (the soft phase anneals a 2D crystal, section 3c), so 3D starts
+   stiffer and stiffens faster: 3D N = 2000 and 8000 certify 2.1x and 1.5x sooner (section 3g).
    FIRE (Bitzek et al. 2006) in displacement form:
        X^{n+1} - X^n = a (X^n - X^{n-1}) + b G,    G = -grad L_rho,   |step_i| <= vmax d
        a = (1 - mix) dt / dt_prev,   b = (1 - mix) dt^2 + mix dt^2 |V| / (dt |G|)
@@ -82,7 +84,7 @@ Q_GENTLE = 1.0  # the explosion's gain once the start is a dilute ball: separate
 # sliding spheres of a large packed core (up to 0.02 d per iteration) have left it (0.01: 2D
 # N = 8000 cores flowed for 8000 iterations at overlaps of 0.1 - 0.2 d; 0.03: 3D N = 2000 jammed
 # looser, 3x slower; 0.1: chatter, 10x the restarts; docs/convergence.md, section 3d)
-C_B, FLOOR, OMEGA, VMAX = 4.0, 3.0, 0.02, 0.02
+FLOOR, OMEGA, VMAX = 3.0, 0.02, 0.02
 N_DELAY, F_INC, F_DEC, MIX0, F_MIX, DT0_FRAC = 5, 1.1, 0.5, 0.1, 0.99, 0.1
 ETA0, ETA_F, ETA_MIN, MIN_INNER = 0.3, 0.5, 0.003, 20
 # a multiplier step is forced after MAX_INNER iterations without one (0: never forced), the
@@ -92,13 +94,21 @@ ETA0, ETA_F, ETA_MIN, MIN_INNER = 0.3, 0.5, 0.003, 20
 # carry the overlap down, and once it is within tolerance they only disturb the force balance
 # the certificate needs (docs/convergence.md, section 3e)
 MAX_INNER, FIRST_INNER, HOLD_OVERLAP = 1500, 3000, 0.5
-# the penalty factor c_b doubles at a multiplier step whose max overlap is above PEN_GROW times
-# that of the step before (the multipliers did not gain on the overlap), up to CB_MAX; the
+# the penalty factor c_b grows (x CB_GROW) at a multiplier step whose max overlap is above PEN_GROW
+# times that of the step before (the multipliers did not gain on the overlap), up to CB_MAX; the
 # continuous dual step runs only while c_b is at its start
 # (1024: a multiplier step at overlap delta changes the pair's multiplier by 2 c_b delta lambda
 # (S), so that at 256 the certificate's 1e-3 d needed the creeping glass's contact forces to
 # settle to within half between two steps; 3D N = 8000 certified 1 run of 3 at 256)
 PEN_GROW, CB_MAX = 0.5, 1024.0
+# the penalty factor's start C_B and its growth factor CB_GROW by dimension: 3D starts at 16 and
+# grows x8 (3D N = 2000 seeds 0 - 9: median 8500 iterations against 17875 with (4, x2); N = 8000
+# seeds 0 - 4: 15950 against 23825; 3D N = 100 and 500 a little slower in median, 3625 and 6100
+# against 2650 and 5325, with shorter worst cases; docs/convergence.md, section 3g). In 2D the same
+# pair is slower (N = 2000: 5125, and 3275 with x8 alone, against 2675): the soft phase
+# anneals a crystal there
+C_B = {1: 4.0, 2: 4.0, 3: 16.0}
+CB_GROW = {1: 2.0, 2: 2.0, 3: 8.0}
 # FIRE's dt_max = DT_LEAPFROG / sqrt(k_rel): the leapfrog's stability bound dt^2 lambda_max < 4
 # with lambda_max bounded by the Gershgorin row k_rel
 DT_LEAPFROG = 2.0
@@ -128,8 +138,9 @@ class FireAL:
         # overlap_tol is the scene's stop.overlap
         self.hold_overlap = HOLD_OVERLAP * overlap_tol
         self.d, self.dim, self.w_eq = d, dim, law["W"]
+        self.cb_start, self.cb_grow = C_B[dim], CB_GROW[dim]
         # phi has the units of d^p (S: p = 2, NS: p = 1) and lambda those of W / d^p: the
-        # penalty rho = C_B w / d_ij^p and the dual gains are per unit of phi / d_ij^p (each
+        # penalty rho = c_b w / d_ij^p and the dual gains are per unit of phi / d_ij^p (each
         # pair's own size, in the kernel), and the explosion's a3 (the weight of grad W) is
         # gamma^2 d^p / 2, so that a scene scaled by any length is the same run
         self.phi_scale = d * d if form == "S" else d
@@ -141,7 +152,7 @@ class FireAL:
         self.one_gain = d * d if form == "S" else 1.0
         s_law = KAPPA * law["g2"] * 2 * dim * law["lam_bar"]
         self.gamma_explode = math.sqrt(2.0 * THETA / s_law)
-        k_rel = 1.0 + 2.0 * (4 * dim) * C_B * self.lam_floor * law["g2"] / self.phi_scale
+        k_rel = 1.0 + 2.0 * (4 * dim) * self.cb_start * self.lam_floor * law["g2"] / self.phi_scale
         dt_max = DT_LEAPFROG * math.sqrt(1.0 / k_rel)
         self.s = {
             "phase": "start",  # start -> explode -> fire, or start -> fire
@@ -151,7 +162,7 @@ class FireAL:
             "dt": DT0_FRAC * dt_max, "dt_prev": DT0_FRAC * dt_max, "dt_max": dt_max,
             "mix": MIX0, "n_positive": 0, "speed_ratio": 0.0, "b": (DT0_FRAC * dt_max) ** 2,
             "eta": ETA0, "since_dual": 0, "dual_now": False, "inner_residual": math.inf,
-            "restarts": 0, "dual_steps": 0, "cb": C_B, "ov_dual": math.inf,
+            "restarts": 0, "dual_steps": 0, "cb": self.cb_start, "ov_dual": math.inf,
         }
 
     @property
@@ -208,7 +219,7 @@ class FireAL:
             s["dual_now"] = True
             s["dual_steps"] += 1
             if fig["max_overlap"] > PEN_GROW * s["ov_dual"]:
-                s["cb"] = min(2.0 * s["cb"], CB_MAX)
+                s["cb"] = min(self.cb_grow * s["cb"], CB_MAX)
             s["ov_dual"] = fig["max_overlap"]
             s["since_dual"] = 0
             s["eta"] = max(ETA_MIN, s["eta"] * ETA_F)
@@ -236,7 +247,7 @@ class FireAL:
         if s["dual_now"]:  # the multiplier step: lambda + rho phi, penalty off
             a4, beta = 0.0, cb
         else:
-            a4, beta = b * cb, (OMEGA * cb if cb == C_B else 0.0)
+            a4, beta = b * cb, (OMEGA * cb if cb == self.cb_start else 0.0)
         return 1.0 + a, -a, b, a4, beta, self.lam_floor, True, True, VMAX * self.d
 
     def force_multiplier(self):

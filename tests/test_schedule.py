@@ -3,12 +3,14 @@ multiplier step is forced, when it is held back, and how far the penalty factor 
 
 import math
 
+import pytest
+
 from mpipack import schedule
 
 
-def fire_schedule(overlap_tol=1e-3):
-    """A 2D N = 2000 schedule whose start needs no explosion: phase "fire" after one figure."""
-    sch = schedule.FireAL(2000, 2, 1.0, "S", overlap_tol=overlap_tol)
+def fire_schedule(overlap_tol=1e-3, dim=2):
+    """An N = 2000 schedule whose start needs no explosion: phase "fire" after one figure."""
+    sch = schedule.FireAL(2000, dim, 1.0, "S", overlap_tol=overlap_tol)
     sch.observe(figure(sch, iteration=1, max_overlap=0.01))
     assert sch.phase == "fire"
     sch.take_pending()
@@ -64,8 +66,13 @@ def test_a_converged_inner_solve_steps_whatever_the_overlap():
     assert sch.s["dual_now"] and sch.s["dual_steps"] == 1
 
 
-def test_the_penalty_factor_doubles_while_the_overlap_does_not_halve_up_to_its_cap():
-    sch = fire_schedule()
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_penalty_factor_grows_while_the_overlap_does_not_halve_up_to_its_cap(dim):
+    """x2 from 4 in 2D, x8 from 16 in 3D (a glass: stiffer sooner); the continuous dual step
+    (beta > 0 outside a multiplier step) runs only at the start's factor."""
+    sch = fire_schedule(dim=dim)
+    start, grow = {2: (4.0, 2.0), 3: (16.0, 8.0)}[dim]
+    assert sch.coefficients()[4] == schedule.OMEGA * start
     it = 2
     factors = []
     for _ in range(12):
@@ -73,7 +80,10 @@ def test_the_penalty_factor_doubles_while_the_overlap_does_not_halve_up_to_its_c
         assert step is not None
         factors.append(sch.s["cb"])
         it = step + 1
-    assert factors[0] == schedule.C_B  # the first step has no step before it to compare with
-    assert factors[1] == 2 * schedule.C_B
+    assert factors[0] == start  # the first step has no step before it to compare with
+    assert factors[1] == grow * start
     assert max(factors) == schedule.CB_MAX == 1024.0
     assert factors == sorted(factors)
+    sch.coefficients()
+    sch.observe(figure(sch, it, 0.01))  # the iteration after a step at a grown factor
+    assert sch.coefficients()[4] == 0.0
