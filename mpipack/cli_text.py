@@ -32,5 +32,7 @@ def certificate_line(cert):
     names = {"overlap": "max overlap {v:.3e} d", "kkt": "KKT residual {v:.3e}",
              "settled": "W change over the window {v:.3e}"}
     parts = [names[k].format(v=c["value"]) + (" ok" if c["ok"] else f" > {c['tol']:g}")
+             + (f" (fitted multipliers; the run's own give {c['run_value']:.3e})"
+                if c.get("multipliers") == "fitted" else "")
              for k, c in cert.items()]
     return "certificate: " + ", ".join(parts)

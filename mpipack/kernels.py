@@ -384,6 +384,26 @@ N_MET_MAX = 3
 
 
 @njit(cache=True, inline="always")
+def entry_multiplier(form, lam, phi, r2, dij, beta, lambda_mode, pen, lam_floor, contact_tol):
+    """The multiplier of one stored pair under ``lambda_mode`` (see above), before lam_scale:
+    the stored lambda, lambda + beta phi clipped at 0 ((2.10b), UPDATE and PEEK), or the force
+    multiplier of a pair in contact to contact_tol (FORCE)."""
+    if lambda_mode == LAMBDA_FORCE:
+        unit = 1.0 / (dij * dij) if form == SMOOTH else 1.0 / dij
+        w = lam if lam > lam_floor else lam_floor
+        lam = lam + pen * w * phi * unit
+        if lam < 0.0:
+            lam = 0.0
+        if r2 > (dij * (1.0 + contact_tol)) ** 2:
+            lam = 0.0
+    elif lambda_mode != LAMBDA_STORED:
+        lam = lam + beta * phi
+        if lam < 0.0:
+            lam = 0.0
+    return lam
+
+
+@njit(cache=True, inline="always")
 def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda, xbar, beta,
                   lambda_mode, lam_scale, pen, lam_floor, contact_tol, measures_a, acc, maxima,
                   pressure, contacts):
@@ -419,21 +439,10 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
             else:
                 r = np.sqrt(r2)
                 phi = dij - r
-            lam = pair_lambda[e]
-            if lambda_mode == LAMBDA_FORCE:
-                unit = 1.0 / (dij * dij) if form == SMOOTH else 1.0 / dij
-                w = lam if lam > lam_floor else lam_floor
-                lam = lam + pen * w * phi * unit
-                if lam < 0.0:
-                    lam = 0.0
-                if r2 > (dij * (1.0 + contact_tol)) ** 2:
-                    lam = 0.0
-            elif lambda_mode != LAMBDA_STORED:
-                lam = lam + beta * phi
-                if lam < 0.0:
-                    lam = 0.0
-                if lambda_mode == LAMBDA_UPDATE:
-                    pair_lambda[e] = lam
+            lam = entry_multiplier(form, pair_lambda[e], phi, r2, dij, beta, lambda_mode, pen,
+                                   lam_floor, contact_tol)
+            if lambda_mode == LAMBDA_UPDATE:
+                pair_lambda[e] = lam
             lam = lam * lam_scale
             if phi > 0.0:
                 if form == SMOOTH:

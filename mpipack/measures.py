@@ -40,15 +40,7 @@ def measure(s, finalize=False, empty=False, overlap_a=True):
     Lagrangian codes test stationarity with; the stored lambda is only the last dual step's.
     """
     st = s.state
-    pen = floor = 0.0
-    if s.schedule is not None and s.schedule.phase == "fire":
-        # the augmented Lagrangian's multipliers: the forces the next pass applies
-        mode = kernels.LAMBDA_FORCE
-        pen, floor = s.schedule.force_multiplier()
-    elif st.lambda_fresh:
-        mode = kernels.LAMBDA_STORED
-    else:
-        mode = kernels.LAMBDA_UPDATE if finalize else kernels.LAMBDA_PEEK
+    mode, pen, floor = multiplier_mode(s, finalize)
     red = Reduction().add_exact("met", [("kkt2", 1), ("gw2", 1), ("lens", 1), ("spheres", 1), ("cf2", 1)]) \
         .add_max("met", [("overlap", 1), ("complementarity", 1), ("max_lambda", 1)]) \
         .add_count("active").begin()
@@ -79,6 +71,27 @@ def measure(s, finalize=False, empty=False, overlap_a=True):
         "radius_of_gyration": math.sqrt(gw2 / s.n),
     }
     return fig, pressure, contacts
+
+
+def multiplier_mode(s, finalize=False):
+    """(lambda_mode, pen, lam_floor): which multipliers are those of the current X (see
+    ``measure``); pen and lam_floor are the fire-al schedule's force multipliers'."""
+    if s.schedule is not None and s.schedule.phase == "fire":
+        # the augmented Lagrangian's multipliers: the forces the next pass applies
+        return (kernels.LAMBDA_FORCE, *s.schedule.force_multiplier())
+    if s.state.lambda_fresh:
+        return kernels.LAMBDA_STORED, 0.0, 0.0
+    return (kernels.LAMBDA_UPDATE if finalize else kernels.LAMBDA_PEEK), 0.0, 0.0
+
+
+def best_kkt(s, fig, target):
+    """The KKT residual of the current X with the best multipliers >= 0 on the pairs in contact
+    (``fit.best_kkt``), starting from the run's own; fig: this X's ``measure`` figures.
+    Returns (residual, fit steps). Collective; changes nothing in the state."""
+    from . import fit
+    mode, pen, floor = multiplier_mode(s)
+    return fit.best_kkt(s, mode, pen, floor, 2.0 * fig["W"], target)
+
 
 def finish(s):
     """Bring lambda up to date with the final X (2.10b) and return the final figures:

@@ -356,7 +356,8 @@ def result_summary(scene, comm, res, wall, profile):
         "stop_reason": res["stop_reason"], "certificate": res["certificate"],
         "wall_seconds": wall, "relative_change": res["relative_change"],
         "max_overlap": res["max_overlap"], "W": res["W"], "kkt_residual": res["kkt_residual"],
-        "force_imbalance": res["force_imbalance"],
+        # the run's own multipliers' KKT residual (the certificate's may be the fitted ones')
+        "kkt_residual_run": res["kkt_residual_run"], "force_imbalance": res["force_imbalance"],
         "complementarity": res["complementarity"], "overlap_A": res["overlap_A"],
         "density": res["density"] if density_valid(scene, res) else None,
         "density_radius": res["density_radius"],

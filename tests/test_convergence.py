@@ -38,7 +38,7 @@ def test_defaults_certify(tmp_path, case, seed):
 
 def test_a_run_that_cannot_certify_says_why(tmp_path):
     """A run whose iteration bound comes before its certificate (3D N = 100 seed 0 certifies
-    at 3900, no 3D N = 100 run in 10 seeds before 2050): exit 4, 'not converged', and the
+    at 3400, no 3D N = 100 run in 10 seeds before 1600): exit 4, 'not converged', and the
     criteria that failed named on screen and in the summary."""
     proc, s, _ = mpipack_run(1, tmp_path, None, ["n=100", "dim=3", "seed=0", "stop.max_iter=500",
                                                  "output.snapshots=false"], quiet=False)

@@ -225,6 +225,26 @@ def test_not_converged_exits_4(run_mpipack):
 
 
 # ---------------------------------------------------------------------------------------------
+def test_certified_by_fitted_multipliers_on_1_2_3_ranks(run_mpipack):
+    """A run certified by the multiplier fit (2D N = 400 seed 0: the run's own multipliers leave
+    a KKT residual of 0.025 at the stop, the fitted ones 0.0075): the same stop, certificate and
+    packing, bit for bit, on 1, 2 and 3 ranks."""
+    runs = {}
+    for P in (1, 2, 3):
+        proc, s, d = run_mpipack(P, None, ["n=400", "seed=0"], dump=True)
+        assert_ok(proc, s)
+        runs[P] = (s, d)
+    s1, d1 = runs[1]
+    kkt = s1["certificate"]["kkt"]
+    assert s1["converged"] and s1["stop_reason"] == "certified", s1["certificate"]
+    assert kkt["multipliers"] == "fitted" and kkt["value"] <= kkt["tol"] < kkt["run_value"], kkt
+    assert s1["kkt_residual"] == kkt["value"] and s1["kkt_residual_run"] == kkt["run_value"], s1
+    for P in (2, 3):
+        s, d = runs[P]
+        assert s["iterations"] == s1["iterations"] and s["certificate"] == s1["certificate"], (P, s["certificate"])
+        assert_bitwise_equal(d1, d, f"fitted certificate: 1 rank vs {P} ranks")
+
+
 # the main job: the paper's section 4.3 case on 2 ranks
 # ---------------------------------------------------------------------------------------------
 

@@ -1,0 +1,99 @@
+"""The certificate's multiplier fit (``fit``): the least KKT residual over multipliers >= 0 on
+the pairs in contact, against an exact nonnegative least-squares solution by enumeration of
+active sets (small clusters, one rank, in-process). Its rank-count independence is in
+tests/test_parallel.py (a certified run whose KKT residual is the fit's, on 1, 2 and 3 ranks)."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from mpipack import config, measures, solver
+from mpipack.comm import Comm
+from mpipack.state import BlockState
+
+
+def solver_at(x, diam, form="S"):
+    """A one-rank solver holding positions x (n, b) with lambda = 0 and every pair in its rows."""
+    n, dim = x.shape
+    scene = config.load("default", [f"n={n}", f"dim={dim}", f"method.form={form}",
+                                    "method.alpha=0.01", "neighbor.skin=100"])
+    s = solver.Solver(scene, Comm())
+    empty = np.zeros(0)
+    s.initialise(BlockState(n_global=n, dim=dim, gid_lo=0, x=x.copy(), x_prev=x.copy(),
+                            diam=np.asarray(diam, float), hist_count=np.zeros(n, np.int64),
+                            hist_gid=np.zeros(0, np.int64), hist_lambda=empty))
+    return s
+
+
+def exact_least_residual(x, diam, form, tol):
+    """min over m >= 0 of ||(X - Xbar) + J^T m|| / ||X - Xbar||, the pairs within tol of contact,
+    by trying every active set (the optimum is the least-squares solution on some set of pairs
+    that is itself nonnegative)."""
+    n, dim = x.shape
+    g = (x - x.mean(axis=0)).ravel()
+    cols = []
+    for k, l in itertools.combinations(range(n), 2):
+        dv = x[k] - x[l]
+        r = np.linalg.norm(dv)
+        dkl = 0.5 * (diam[k] + diam[l])
+        if r > dkl * (1 + tol):
+            continue
+        col = np.zeros(n * dim)
+        grad = -2.0 * dv if form == "S" else -dv / r
+        col[k * dim:(k + 1) * dim] = grad
+        col[l * dim:(l + 1) * dim] = -grad
+        cols.append(col)
+    best = np.linalg.norm(g)
+    for size in range(1, len(cols) + 1):
+        for subset in itertools.combinations(range(len(cols)), size):
+            A = np.stack([cols[c] for c in subset], axis=1)
+            m, *_ = np.linalg.lstsq(A, -g, rcond=None)
+            if (m >= -1e-12).all():
+                best = min(best, np.linalg.norm(g + A @ np.maximum(m, 0)))
+    return best / np.linalg.norm(g), len(cols)
+
+
+def test_a_packed_triangle_is_balanced_by_the_fit():
+    """Three touching discs: stationary, but the run's multipliers (zero) say KKT = 1."""
+    x = np.array([[0.0, 0.0], [1.0, 0.0], [0.5, np.sqrt(0.75)]])
+    s = solver_at(x, [1.0, 1.0, 1.0])
+    fig, _, _ = measures.measure(s, overlap_a=False)
+    assert fig["kkt_residual"] == pytest.approx(1.0)
+    kkt, steps = measures.best_kkt(s, fig, target=1e-9)
+    assert kkt <= 1e-9 and steps > 0
+
+
+def test_an_unsupported_sphere_is_not_balanced():
+    """An L of three discs: the outer two are pulled sideways off their single contact, which
+    no nonnegative multiplier can hold (the exact least residual is 0.5)."""
+    x = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    s = solver_at(x, [1.0, 1.0, 1.0])
+    fig, _, _ = measures.measure(s, overlap_a=False)
+    kkt, _ = measures.best_kkt(s, fig, target=1e-2)
+    exact, pairs = exact_least_residual(x, [1.0] * 3, "S", s.scene.stop.overlap)
+    assert pairs == 2 and exact == pytest.approx(0.5)
+    assert exact - 1e-12 <= kkt <= exact + 1e-6
+
+
+@pytest.mark.parametrize("form", ["S", "NS"])
+@pytest.mark.parametrize("dim,seed", [(2, 0), (2, 1), (2, 2), (2, 3), (3, 0), (3, 1), (3, 2)])
+def test_the_fit_reaches_the_least_residual(form, dim, seed):
+    """Random clusters of 6 overlapping spheres of mixed sizes: the fit's residual is never
+    below the exact minimum (it is an actual m >= 0's) and reaches it."""
+    rng = np.random.default_rng(seed)
+    diam = rng.uniform(1.0, 1.5, 6)
+    x = rng.normal(scale=0.7, size=(6, dim))
+    s = solver_at(x, diam, form)
+    fig, _, _ = measures.measure(s, overlap_a=False)
+    kkt, _ = measures.best_kkt(s, fig, target=0.0)
+    exact, pairs = exact_least_residual(x, diam, form, s.scene.stop.overlap)
+    assert pairs >= 4, "test set-up: want several contacts"
+    assert exact - 1e-8 <= kkt <= exact + 1e-5, (kkt, exact)
+
+
+def test_no_contact_leaves_the_pull_of_w():
+    x = np.array([[0.0, 0.0], [3.0, 0.0]])
+    s = solver_at(x, [1.0, 1.0])
+    fig, _, _ = measures.measure(s, overlap_a=False)
+    assert measures.best_kkt(s, fig, target=1e-2) == (1.0, 0)
