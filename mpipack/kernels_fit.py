@@ -22,7 +22,7 @@ import numpy as np
 from numba import njit
 
 from . import exactsum
-from .kernels import SMOOTH, entry_multiplier
+from .kernels import NONSMOOTH, SMOOTH, entry_multiplier
 
 # exact rows: sum_i |r_i|^2, sum over entries of dm^2 and of dm (g_new - g_old) (the
 # Barzilai-Borwein step's s.s and s.y; every pair counted twice, in both of its rows)
@@ -75,7 +75,7 @@ def start_s(x, n_local, diam, po, pj, pl, beta, mode, scale, pen, floor, tol, m,
 
 @njit(cache=True)
 def start_ns(x, n_local, diam, po, pj, pl, beta, mode, scale, pen, floor, tol, m, active):
-    _start(1, x, n_local, diam, po, pj, pl, beta, mode, scale, pen, floor, tol, m, active)
+    _start(NONSMOOTH, x, n_local, diam, po, pj, pl, beta, mode, scale, pen, floor, tol, m, active)
 
 
 @njit(cache=True, inline="always")
@@ -115,7 +115,7 @@ def step_s(x, n_local, po, pj, active, m, dm, g, xbar, step, r, acc):
 
 @njit(cache=True)
 def step_ns(x, n_local, po, pj, active, m, dm, g, xbar, step, r, acc):
-    _step(1, x, n_local, po, pj, active, m, dm, g, xbar, step, r, acc)
+    _step(NONSMOOTH, x, n_local, po, pj, active, m, dm, g, xbar, step, r, acc)
 
 
 @njit(cache=True, inline="always")
@@ -152,7 +152,7 @@ def gradient_s(x, n_local, po, pj, active, dm, r, g, acc, maxima):
 
 @njit(cache=True)
 def gradient_ns(x, n_local, po, pj, active, dm, r, g, acc, maxima):
-    _gradient(1, x, n_local, po, pj, active, dm, r, g, acc, maxima)
+    _gradient(NONSMOOTH, x, n_local, po, pj, active, dm, r, g, acc, maxima)
 
 
 _KERNELS = {"S": (start_s, step_s, gradient_s), "NS": (start_ns, step_ns, gradient_ns)}
