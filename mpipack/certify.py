@@ -107,7 +107,7 @@ class Certifier:
             return False
         # all three criteria of one configuration: the current X^{n+1}, its W and its iteration
         # (the certificate at the end of the run is of that same state)
-        m, _, _ = measures.measure(solver, overlap_a=False)
+        m, _ = measures.measure(solver, overlap_a=False)
         now = fig["iteration"]
         fit = (FIT_SHARE * now >= FIT_STEP_COST * self.fit_steps
                and m["kkt_residual"] <= FIT_GAIN * self.stop.kkt)

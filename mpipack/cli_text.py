@@ -36,3 +36,13 @@ def certificate_line(cert):
                 if c.get("multipliers") == "fitted" else "")
              for k, c in cert.items()]
     return "certificate: " + ", ".join(parts)
+
+
+def residual_line(scene, res):
+    """Where the run's own KKT residual sits, for a run whose KKT criterion failed: the worst
+    sphere's share of the squared residual beside the 1/N of an even spread (a few spheres
+    still moving against a whole packing off balance)."""
+    where = ("; the snapshots' net_force field shows where" if scene.output.snapshots
+             else "; with output.snapshots = true the net_force field shows where")
+    return (f"the worst sphere carries {res['net_force_share']:.2%} of the run's squared KKT residual "
+            f"(an even spread: 1/N = {1.0 / scene.n:.1e}){where}")

@@ -111,7 +111,7 @@ def metrics_recorder(scene, comm, path, every, resume_after=None):
         if state["last"] == ctx.iteration:  # the end, right after a scheduled row
             return None
         state["last"] = ctx.iteration
-        m, _, _ = measures.measure(ctx.solver)
+        m, _ = measures.measure(ctx.solver)
         if comm.rank != 0:
             return None
         row = (ctx.iteration, ctx.elapsed, ctx.figures.get("relative_change", float("nan")),

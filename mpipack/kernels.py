@@ -362,7 +362,9 @@ def nested_step(method, form):
 #               CF2 = sum_i c_i^2, c_i = sum_j lambda_ij |grad_{X_i} phi_ij| (the magnitudes of
 #               the contact forces on sphere i, the scale of the force balance g_i = 0)
 #   maxima      max overlap (d_ij - r)/d_ij, complementarity max lambda_ij |phi_ij|, max lambda_ij
-#   per particle pressure mu_i = sum_j lambda_ij (paper, Fig. 9) and active contacts
+#   per particle pressure mu_i = sum_j lambda_ij (paper, Fig. 9), active contacts and the net
+#               force |g_i| (where the KKT residual sits: a packing still rearranging carries it
+#               on a few spheres, an unconverged multiplier scale on all of them)
 # lam_scale turns the stored multipliers into those of the KKT system (2.4): 1 for DAHA, AHA
 # and NAP; tau for NAV, whose multipliers belong to the velocity problem (2.6): lambda = tau mu.
 # lambda_mode: LAMBDA_STORED uses the stored multipliers; LAMBDA_UPDATE first brings them up
@@ -379,8 +381,8 @@ LAMBDA_STORED, LAMBDA_UPDATE, LAMBDA_PEEK, LAMBDA_FORCE = 0, 1, 2, 3
 # its lower gid) and the spheres' measure sum_i |B_i|, for the paper's A (Definition 4.1)
 MET_KKT2, MET_GW2, MET_OVERLAP_MEASURE, MET_SPHERE_MEASURE, MET_CF2 = 0, 1, 2, 3, 4
 N_MET_EXACT = 5
-MET_OVERLAP, MET_COMPL, MET_LAMBDA = 0, 1, 2
-N_MET_MAX = 3
+MET_OVERLAP, MET_COMPL, MET_LAMBDA, MET_NET = 0, 1, 2, 3
+N_MET_MAX = 4
 
 
 @njit(cache=True, inline="always")
@@ -406,7 +408,7 @@ def entry_multiplier(form, lam, phi, r2, dij, beta, lambda_mode, pen, lam_floor,
 @njit(cache=True, inline="always")
 def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda, xbar, beta,
                   lambda_mode, lam_scale, pen, lam_floor, contact_tol, measures_a, acc, maxima,
-                  pressure, contacts):
+                  pressure, contacts, net_force):
     dim = x.shape[1]
     fbuf = exactsum.staging(acc)
     g = np.zeros(dim)
@@ -415,6 +417,7 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
     min_ratio2 = 1.0
     max_compl = 0.0
     max_lam = 0.0
+    max_net2 = 0.0
     n_active = 0
     for i in range(n_local):
         gw2 = 0.0
@@ -480,27 +483,31 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
             exactsum.add(fbuf, acc, MET_SPHERE_MEASURE, metrics.ball_volume(dim, 0.5 * di))
         pressure[i] = mu
         contacts[i] = nc
+        net_force[i] = np.sqrt(kkt2)
+        if kkt2 > max_net2:
+            max_net2 = kkt2
     exactsum.flush(fbuf, acc)
     if form == SMOOTH:
         max_overlap = 1.0 - np.sqrt(min_ratio2)
     maxima[MET_OVERLAP] = max_overlap
     maxima[MET_COMPL] = max_compl
     maxima[MET_LAMBDA] = max_lam
+    maxima[MET_NET] = np.sqrt(max_net2)
     return n_active
 
 
 @njit(cache=True)
 def metrics_s(x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, pen, floor, tol, area, acc, mx,
-              pressure, contacts):
+              pressure, contacts, net_force):
     return _pair_metrics(SMOOTH, x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, pen, floor, tol, area,
-                         acc, mx, pressure, contacts)
+                         acc, mx, pressure, contacts, net_force)
 
 
 @njit(cache=True)
 def metrics_ns(x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, pen, floor, tol, area, acc, mx,
-              pressure, contacts):
+              pressure, contacts, net_force):
     return _pair_metrics(NONSMOOTH, x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, pen, floor, tol, area,
-                         acc, mx, pressure, contacts)
+                         acc, mx, pressure, contacts, net_force)
 
 
 def pair_metrics(form):
@@ -508,8 +515,8 @@ def pair_metrics(form):
     (n_total,), pair_offsets, pair_j, pair_lambda, xbar, beta, lambda_mode, lam_scale, pen, lam_floor,
     contact_tol (LAMBDA_FORCE only), measures_a (with the
     overlap and sphere measures of the paper's A: the costly part, lens areas), acc (5, NBINS+1), maxima
-    (N_MET_MAX,), pressure (n_local,), contacts int32 (n_local,)); returns the number of row
-    entries with lambda > 0."""
+    (N_MET_MAX,), pressure (n_local,), contacts int32 (n_local,), net_force (n_local,): |g_i|);
+    returns the number of row entries with lambda > 0."""
     return metrics_s if form == "S" else metrics_ns
 
 

@@ -21,9 +21,15 @@ def measure(s, finalize=False, empty=False, overlap_a=True):
     The multipliers are those of the current X: when the state holds lambda^{n-1} (DAHA/AHA
     between iterations) the pass applies (2.10b) on the fly; it stores the result only with
     ``finalize`` (the end of a run), so a check in the middle of a run changes nothing.
-    Returns the reduced figures and, per local particle, pressure mu_i = sum_j lambda_ij and
-    active contacts (arrays of n_local rows). ``empty`` runs the pass over no particle (it
-    compiles the kernel, and still reduces: collective).
+    Returns the reduced figures and the per-sphere fields (a dict of arrays of n_local rows):
+    pressure mu_i = sum_j lambda_ij, active contacts, and net_force |g_i|, the sphere's row of
+    the KKT residual, g_i = (X_i - Xbar) + sum_j lambda_ij grad_{X_i} phi_ij. ``empty`` runs the
+    pass over no particle (it compiles the kernel, and still reduces: collective).
+
+    max_net_force = max_i |g_i|, and net_force_share = max_i |g_i|^2 / sum_i |g_i|^2, the part
+    of the squared residual on the single worst sphere: near 1 / N when the residual is spread
+    over the packing (multipliers off by a common factor, a breathing mode), large when a few
+    spheres carry it (a local rearrangement still under way; docs/convergence.md, section 3i).
 
     Force imbalance = ||grad W + sum lambda grad phi|| / ||c||, c_i = sum_j lambda_ij
     |grad_i phi_ij|: the same net forces relative to the contact forces the spheres carry
@@ -42,14 +48,15 @@ def measure(s, finalize=False, empty=False, overlap_a=True):
     st = s.state
     mode, pen, floor = multiplier_mode(s, finalize)
     red = Reduction().add_exact("met", [("kkt2", 1), ("gw2", 1), ("lens", 1), ("spheres", 1), ("cf2", 1)]) \
-        .add_max("met", [("overlap", 1), ("complementarity", 1), ("max_lambda", 1)]) \
+        .add_max("met", [("overlap", 1), ("complementarity", 1), ("max_lambda", 1), ("max_net_force", 1)]) \
         .add_count("active").begin()
     pressure = np.zeros(st.n_local)
     contacts = np.zeros(st.n_local, dtype=np.int32)
+    net_force = np.zeros(st.n_local)
     n_active = s._metrics_kernel(st.x, 0 if empty else st.n_local, st.diam, st.gid, st.pair_offsets, st.pair_j,
                                  st.pair_lambda, s.xbar, s.beta, mode, s.kkt_lambda_scale, pen, floor,
                                  s.scene.stop.overlap, overlap_a,
-                                 red.acc("met"), red.maxima("met"), pressure, contacts)
+                                 red.acc("met"), red.maxima("met"), pressure, contacts, net_force)
     if mode == kernels.LAMBDA_UPDATE:
         st.lambda_fresh = True
     red.set_count("active", n_active)
@@ -67,10 +74,12 @@ def measure(s, finalize=False, empty=False, overlap_a=True):
         "overlap_A": (red.value("lens") / (s.n * red.value("spheres"))
                       if overlap_a and red.value("spheres") > 0 else math.nan),
         "max_lambda": red.max("max_lambda"),
+        "max_net_force": red.max("max_net_force"),
+        "net_force_share": (red.max("max_net_force") ** 2 / kkt2 if kkt2 > 0 else 0.0),
         "active_pairs": red.count("active") // 2,
         "radius_of_gyration": math.sqrt(gw2 / s.n),
     }
-    return fig, pressure, contacts
+    return fig, {"pressure": pressure, "contacts": contacts, "net_force": net_force}
 
 
 def multiplier_mode(s, finalize=False):
@@ -98,7 +107,7 @@ def finish(s):
     max overlap, W, KKT residual, packing density about the centre of mass, active pairs."""
     # DAHA/AHA hold lambda^{n-1}: one (2.10b) pass makes it lambda^n; NAP/NAV end every
     # outer iteration with fresh multipliers
-    fig, _, _ = measure(s, finalize=True)
+    fig, _ = measure(s, finalize=True)
     r_gyr = fig.pop("radius_of_gyration")
     radius = r_gyr if r_gyr > 0 else s.d_max
     red = Reduction().add_exact("cover", [("cover", 1)]).begin()

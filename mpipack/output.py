@@ -32,12 +32,12 @@ def file_attrs(scene, comm):
 
 def snapshot_fields(solver):
     """Per-sphere fields of a snapshot, local rows (collective: a metrics pass for the
-    pressure mu_i = sum_j lambda_ij and the active contacts). Returns (gid, fields, figures)."""
-    fig, pressure, contacts = measures.measure(solver, overlap_a=False)
+    pressure mu_i = sum_j lambda_ij, the active contacts and the net force |g_i|, the sphere's
+    row of the KKT residual). Returns (gid, fields, figures)."""
+    fig, spheres = measures.measure(solver, overlap_a=False)
     st = solver.state
     n = st.n_local
-    return st.gid[:n], {"position": st.x[:n], "diameter": st.diam[:n], "pressure": pressure,
-                        "contacts": contacts}, fig
+    return st.gid[:n], {"position": st.x[:n], "diameter": st.diam[:n], **spheres}, fig
 
 
 class Snapshots:

@@ -358,6 +358,9 @@ def result_summary(scene, comm, res, wall, profile):
         "max_overlap": res["max_overlap"], "W": res["W"], "kkt_residual": res["kkt_residual"],
         # the run's own multipliers' KKT residual (the certificate's may be the fitted ones')
         "kkt_residual_run": res["kkt_residual_run"], "force_imbalance": res["force_imbalance"],
+        # where the run's residual sits: the largest net force on one sphere and its share of
+        # the squared residual (1/N if spread evenly; snapshots hold net_force per sphere)
+        "max_net_force": res["max_net_force"], "net_force_share": res["net_force_share"],
         "complementarity": res["complementarity"], "overlap_A": res["overlap_A"],
         "density": res["density"] if density_valid(scene, res) else None,
         "density_radius": res["density_radius"],
@@ -391,13 +394,15 @@ def exit_code(scene, res):
 
 
 def print_result(scene, res, wall, summary_path, code, checkpoints):
-    from .cli_text import certificate_line, density_line, verdict
+    from .cli_text import certificate_line, density_line, residual_line, verdict
     lines = [f"mpipack: {verdict(scene, res)} after {res['iterations']} iterations in {wall:.2f} s "
              f"({res['particle_iterations_per_second']:.3g} particle-iterations/s)",
              f"  {certificate_line(res['certificate'])}",
              f"  relative change {res['relative_change']:.3e}, W = {res['W']:.10g}, force imbalance "
              f"{res['force_imbalance']:.3e} (net force / contact forces)",
              f"  {density_line(scene, res)}"]
+    if not res["certificate"]["kkt"]["ok"]:
+        lines.append(f"  {residual_line(scene, res)}")
     if code == EXIT_CHECKPOINTED:
         lines.append(f"  stopped by {res['stop_reason']}: checkpoint of iteration "
                      f"{checkpoints.last_iteration} in {checkpoints.path}; continue with "

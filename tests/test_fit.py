@@ -58,7 +58,7 @@ def test_a_packed_triangle_is_balanced_by_the_fit():
     """Three touching discs: stationary, but the run's multipliers (zero) say KKT = 1."""
     x = np.array([[0.0, 0.0], [1.0, 0.0], [0.5, np.sqrt(0.75)]])
     s = solver_at(x, [1.0, 1.0, 1.0])
-    fig, _, _ = measures.measure(s, overlap_a=False)
+    fig, _ = measures.measure(s, overlap_a=False)
     assert fig["kkt_residual"] == pytest.approx(1.0)
     kkt, steps = measures.best_kkt(s, fig, target=1e-9)
     assert kkt <= 1e-9 and steps > 0
@@ -69,7 +69,7 @@ def test_an_unsupported_sphere_is_not_balanced():
     no nonnegative multiplier can hold (the exact least residual is 0.5)."""
     x = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
     s = solver_at(x, [1.0, 1.0, 1.0])
-    fig, _, _ = measures.measure(s, overlap_a=False)
+    fig, _ = measures.measure(s, overlap_a=False)
     kkt, _ = measures.best_kkt(s, fig, target=1e-2)
     exact, pairs = exact_least_residual(x, [1.0] * 3, "S", s.scene.stop.overlap)
     assert pairs == 2 and exact == pytest.approx(0.5)
@@ -85,7 +85,7 @@ def test_the_fit_reaches_the_least_residual(form, dim, seed):
     diam = rng.uniform(1.0, 1.5, 6)
     x = rng.normal(scale=0.7, size=(6, dim))
     s = solver_at(x, diam, form)
-    fig, _, _ = measures.measure(s, overlap_a=False)
+    fig, _ = measures.measure(s, overlap_a=False)
     kkt, _ = measures.best_kkt(s, fig, target=0.0)
     exact, pairs = exact_least_residual(x, diam, form, s.scene.stop.overlap)
     assert pairs >= 4, "test set-up: want several contacts"
@@ -95,5 +95,5 @@ def test_the_fit_reaches_the_least_residual(form, dim, seed):
 def test_no_contact_leaves_the_pull_of_w():
     x = np.array([[0.0, 0.0], [3.0, 0.0]])
     s = solver_at(x, [1.0, 1.0])
-    fig, _, _ = measures.measure(s, overlap_a=False)
+    fig, _ = measures.measure(s, overlap_a=False)
     assert measures.best_kkt(s, fig, target=1e-2) == (1.0, 0)

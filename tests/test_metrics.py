@@ -57,7 +57,7 @@ def _two_sphere_kkt(form, r, lam, pen, floor, tol):
     mx = np.zeros(kernels.N_MET_MAX)
     pressure, contacts = np.zeros(2), np.zeros(2, dtype=np.int32)
     kernels.pair_metrics(form)(x, 2, diam, np.arange(2), po, pj, pl, np.zeros(2), 0.0, kernels.LAMBDA_FORCE,
-                               1.0, pen, floor, tol, False, acc, mx, pressure, contacts)
+                               1.0, pen, floor, tol, False, acc, mx, pressure, contacts, np.zeros(2))
     kkt2, gw2 = exactsum.value(acc, 0), exactsum.value(acc, 1)
     return float(np.sqrt(kkt2 / gw2)), pressure[0]
 
@@ -99,7 +99,7 @@ def test_force_imbalance_is_the_net_force_over_the_contact_forces(form):
         mx = np.zeros(kernels.N_MET_MAX)
         kernels.pair_metrics(form)(x, 2, np.ones(2), np.arange(2), po, pj, np.array([lam, lam]),
                                    np.zeros(2), 0.0, kernels.LAMBDA_STORED, 1.0, 0.0, 0.0, 1e-3, False,
-                                   acc, mx, np.zeros(2), np.zeros(2, dtype=np.int32))
+                                   acc, mx, np.zeros(2), np.zeros(2, dtype=np.int32), np.zeros(2))
         kkt2, gw2, cf2 = (exactsum.value(acc, k) for k in (kernels.MET_KKT2, kernels.MET_GW2, kernels.MET_CF2))
         return np.sqrt(kkt2 / gw2), (np.sqrt(kkt2 / cf2) if cf2 > 0 else np.inf)
 
@@ -110,3 +110,27 @@ def test_force_imbalance_is_the_net_force_over_the_contact_forces(form):
     assert kkt < 1e-12 and imbalance < 1e-12
     kkt, imbalance = figures(0.0)
     assert kkt == pytest.approx(1.0, rel=1e-12) and imbalance == np.inf
+
+
+@pytest.mark.parametrize("form", ["S", "NS"])
+def test_net_force_per_sphere_is_its_row_of_the_kkt_residual(form):
+    """Three spheres on the x axis (Xbar = 0): a touching pair at -r/2 and r/2 whose multiplier
+    carries half the balancing force, and a free sphere at x = 3 with no partner. Net forces:
+    r/4 on each of the pair (the pull r/2 less the contact force r/4), 3 on the free one (its
+    whole pull). max_net_force is 3 and its share of the squared residual 9 / (9 + 2 (r/4)^2)."""
+    from mpipack import exactsum, kernels
+    r = 0.999
+    x = np.array([[-r / 2, 0.0], [r / 2, 0.0], [3.0, 0.0]])
+    po, pj = np.array([0, 1, 2, 2], dtype=np.int64), np.array([1, 0], dtype=np.int64)
+    grad_phi = 2 * r if form == "S" else 1.0
+    lam = 0.5 * (r / 2) / grad_phi
+    acc = exactsum.new_accumulator(kernels.N_MET_EXACT)
+    mx = np.zeros(kernels.N_MET_MAX)
+    net = np.full(3, -1.0)
+    kernels.pair_metrics(form)(x, 3, np.ones(3), np.arange(3), po, pj, np.array([lam, lam]),
+                               np.zeros(2), 0.0, kernels.LAMBDA_STORED, 1.0, 0.0, 0.0, 1e-3, False,
+                               acc, mx, np.zeros(3), np.zeros(3, dtype=np.int32), net)
+    assert net == pytest.approx([r / 4, r / 4, 3.0], rel=1e-12)
+    kkt2 = exactsum.value(acc, kernels.MET_KKT2)
+    assert kkt2 == pytest.approx(9.0 + 2 * (r / 4) ** 2, rel=1e-12)
+    assert mx[kernels.MET_NET] == pytest.approx(3.0, rel=1e-15)

@@ -113,7 +113,8 @@ def test_same_bits_on_1_2_3_ranks(run_mpipack, name):
     for P in (2, 3):
         s, d = runs[P]
         assert_bitwise_equal(d1, d, f"{name}: 1 rank vs {P} ranks")
-        for key in ("W", "max_overlap", "relative_change", "density", "active_pairs", "rebuilds"):
+        for key in ("W", "max_overlap", "relative_change", "density", "active_pairs", "rebuilds",
+                    "max_net_force", "net_force_share"):
             assert s[key] == s1[key], (key, P, s[key], s1[key])
         assert s["rebalances"] >= 1, s
         if "schedule" in s:  # the dense start was spread into a ball: every sphere migrated
@@ -218,10 +219,14 @@ def test_divergence_exits_3(run_mpipack):
 
 
 def test_not_converged_exits_4(run_mpipack):
-    proc, summary, _ = run_mpipack(2, None, ["n=200", "stop.max_iter=50"], timeout=120)
+    proc, summary, _ = run_mpipack(2, None, ["n=200", "stop.max_iter=50"], timeout=120, quiet=False)
     assert proc.returncode == 4, describe(proc)
     assert summary is not None and summary["converged"] is False and summary["iterations"] == 50
     assert summary["relative_change"] >= summary["eps"]
+    # the KKT criterion failed: the summary and the printed result say where the residual sits
+    assert not summary["certificate"]["kkt"]["ok"]
+    assert summary["max_net_force"] > 0 and 0 < summary["net_force_share"] <= 1, summary
+    assert "of the run's squared KKT residual (an even spread: 1/N = 5.0e-03)" in proc.stdout, describe(proc)
 
 
 # ---------------------------------------------------------------------------------------------

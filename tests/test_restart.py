@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 from conftest import assert_bitwise_equal, describe, mpi_env, mpipack_run
@@ -153,7 +154,8 @@ def test_vtk_command(tmp_path):
     assert len(vtus) == 2  # iterations 20 and 40 (the final state is iteration 40)
     mesh = meshio.read(vtus[-1])
     assert mesh.points.shape == (100, 3)
-    assert set(mesh.point_data) >= {"diameter", "pressure", "contacts"}
+    assert set(mesh.point_data) >= {"diameter", "pressure", "contacts", "net_force"}
+    assert np.all(mesh.point_data["net_force"] >= 0) and mesh.point_data["net_force"].max() > 0
     assert (out / "snapshots.pvd").exists()
 
 

@@ -17,6 +17,8 @@ per-particle dataset is global id i::
         diameter      (N,)     float64   d_i
         pressure      (N,)     float64   mu_i = sum_j lambda_ij
         contacts      (N,)     int32     partners with lambda_ij > 0
+        net_force     (N,)     float64   |g_i|, g_i = (X_i - Xbar) + sum_j lambda_ij grad_i phi_ij:
+                                         the sphere's row of the KKT residual (run snapshots)
         position_xy   (N, 2)   float64   1D runs only: (x, 0), for ParaView (see xdmf.py)
         <any other>   (N, ...)           any further field the caller passes, its dtype kept
 
