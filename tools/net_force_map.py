@@ -49,7 +49,8 @@ def report(fields, attrs, before=None):
     rel = x - x.mean(axis=0)
     r = np.sqrt((rel ** 2).sum(axis=1))
     kkt, counts = spread(g, float((rel ** 2).sum()))
-    share = g.astype(float) ** 2 / max(float((g.astype(float) ** 2).sum()), 1e-300)
+    sq = g.astype(float) ** 2
+    share = sq / max(float(sq.sum()), 1e-300)
     lines = [f"iteration {int(attrs['iteration'])}, N = {n}: KKT residual (run's multipliers) {kkt:.4g}"
              f" (snapshot attribute {attrs.get('kkt_residual', float('nan')):.4g})",
              "  spheres carrying " + ", ".join(f"{q:.0%}: {c}" for q, c in counts.items())
