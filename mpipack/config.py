@@ -29,6 +29,17 @@ SCHEDULES = ("fixed", "fire-al")
 # (2.10) exactly)
 FIXED_FALLBACK = {"alpha": 7.8e-3, "beta": 2.8e3, "c": 2.0}
 PAPER_GAMMA = 1.6e-2  # with the fallback alpha and beta
+# stop.max_iter "auto": MAX_ITER_BASE up to N = MAX_ITER_N, then growing like the cluster's
+# diameter in sphere diameters, N^(1/b) (the iterations per unit of the trap's time at a step
+# bounded by the stiffest contact): 3D N = 1e5 certified in 90000 iterations and 2D N = 32000
+# in up to 70900 (docs/convergence.md, sections 3h and 3j), both near a fixed bound of 100000
+MAX_ITER_BASE, MAX_ITER_N = 100000, 32000
+
+
+def auto_max_iter(n, dim):
+    """The default iteration bound of a scene of n spheres in dim dimensions (see above)."""
+    grow = max(1.0, n / MAX_ITER_N) ** (1.0 / dim)
+    return int(round(MAX_ITER_BASE * grow, -3))
 
 DEFAULTS = {
     "name": "scene",
@@ -39,7 +50,7 @@ DEFAULTS = {
     "init": {"kind": "gaussian", "sigma": "auto", "fraction": 0.5, "spacing": 1.0, "jitter": 0.0},
     "method": {"name": "daha", "form": "S", "alpha": None, "beta": None, "gamma": None, "c": None,
                "schedule": None, "l_inner": 10, "eps_inner": 1e-9, "tau": 0.1},
-    "stop": {"rule": None, "eps": 1e-5, "max_iter": 100000, "max_seconds": 0.0, "overlap": 1e-3,
+    "stop": {"rule": None, "eps": 1e-5, "max_iter": "auto", "max_seconds": 0.0, "overlap": 1e-3,
              "kkt": 1e-2, "w_rtol": 1e-4, "w_window": 0.1, "check_every": 50, "watchdog": True},
     "neighbor": {"skin": 0.3, "rebalance": 1.2, "max_pair_gib": None},
     "output": {"progress_every": 0.5, "dir": None, "metrics_every": 0, "w_optimum": None,
@@ -338,6 +349,11 @@ def validate(scene):
     if scene["stop"]["rule"] not in STOP_RULES:
         raise SceneError(f"key 'stop.rule' must be one of {', '.join(STOP_RULES)}, got {scene['stop']['rule']!r}")
     _num(scene, "stop.eps", allow_zero=True)
+    if scene["stop"]["max_iter"] == "auto":
+        scene["stop"]["max_iter"] = auto_max_iter(scene["n"], scene["dim"])
+    elif isinstance(scene["stop"]["max_iter"], str):
+        raise SceneError(f"key 'stop.max_iter' must be a non-negative integer or \"auto\", "
+                         f"got {scene['stop']['max_iter']!r}")
     _num(scene, "stop.max_iter", int, allow_zero=True)
     if scene["stop"]["max_iter"] > 10 ** 12:
         raise SceneError(f"key 'stop.max_iter' must be at most 1e12, got {scene['stop']['max_iter']}")

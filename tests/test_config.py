@@ -65,7 +65,8 @@ def test_scene_file(tmp_path):
     s = config.load(str(f))
     assert s.name == "mine" and s.dim == 3 and s.n == 10
     assert s.method.gamma == pytest.approx(0.2, rel=1e-15)
-    assert s.as_dict()["stop"] == {**config.DEFAULTS["stop"], "rule": "eps"}  # a fixed scheme: (4.3)
+    # a fixed scheme: (4.3); "auto" bound of N = 10
+    assert s.as_dict()["stop"] == {**config.DEFAULTS["stop"], "rule": "eps", "max_iter": 100000}
 
 
 BAD = [
@@ -100,6 +101,7 @@ BAD = [
     ("stop.check_every=0", "stop.check_every"),
     ("stop.eps=-1", "stop.eps"),
     ("stop.max_iter=-1", "stop.max_iter"),
+    ('stop.max_iter="many"', "stop.max_iter"),
     ("neighbor.skin=0", "neighbor.skin"),
     ("neighbor.rebalance=0.9", "neighbor.rebalance"),
     ("seed=-1", "seed"),
@@ -131,6 +133,21 @@ def test_bad_scene_source(tmp_path):
     g.write_text("[particles]\ndiameter = 1.0\nradius = 0.5\n")
     with pytest.raises(config.SceneError, match="particles.radius"):
         config.load(str(g))
+
+
+def test_iteration_bound_grows_with_n(tmp_path):
+    """stop.max_iter "auto" (the default scene's and any scene that leaves the key out): 100000
+    up to N = 32000, then x (N / 32000)^(1/b); a number given is kept, paper scenes keep theirs."""
+    bound = {(n, dim): config.load("default", [f"n={n}", f"dim={dim}"]).stop.max_iter
+             for n, dim in [(2, 2), (32000, 2), (100000, 2), (100000, 3), (1000000, 2)]}
+    assert bound == {(2, 2): 100000, (32000, 2): 100000, (100000, 2): 177000, (100000, 3): 146000,
+                     (1000000, 2): 559000}
+    assert config.load("default", ["n=100000", "stop.max_iter=5"]).stop.max_iter == 5
+    assert config.load("default", ["stop.max_iter=\"auto\""]).stop.max_iter == 100000
+    assert config.load("paper-3d", ["n=100000"]).stop.max_iter == 10000
+    f = tmp_path / "s.toml"
+    f.write_text("n = 256000\ndim = 3\n")
+    assert config.load(str(f), []).stop.max_iter == 200000
 
 
 def test_starts_that_scale():
