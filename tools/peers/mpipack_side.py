@@ -131,8 +131,10 @@ def run_mpipack(start_meta, ranks, out_dir, dump, sets=(), timeout=None):
 
 
 def budget_sets(iters):
-    """A fixed iteration budget: run exactly `iters` iterations (stop.eps = 0)."""
-    return [f"stop.max_iter={int(iters)}", "stop.eps=0"]
+    """A fixed iteration budget: run exactly `iters` iterations. The default scene stops by
+    its certificate (stop.rule = "certified"), which would end every budget past the certified
+    stop at the same state: the paper's rule (4.3) with eps = 0 never fires."""
+    return [f"stop.max_iter={int(iters)}", "stop.rule=eps", "stop.eps=0"]
 
 
 def loop_seconds(summary):
@@ -229,6 +231,8 @@ def ladder(meta, ranks, args, workdir):
                   f"{f.get('max_overlap', math.nan):.3e} W/N2 {f.get('W_over_N2', math.nan):.6f}", flush=True)
         if "error" in rec:
             return runs, None, rec["error"]
+        if rec["iterations"] != k:  # a budget run must run its budget, or the ladder stalls
+            return runs, None, f"budget {k} stopped at {rec['iterations']} iterations"
         its.append(rec["iterations"])
         Ws.append(rec["final"]["W"])
         if score.at_finish_line(rec["final"], its, Ws, args.overlap_tol, args.w_tol, args.lookback, args.window):
