@@ -36,8 +36,10 @@ MIN_WINDOW = 1
 # two light pair passes, a ghost refresh and one allreduce, costs about one iteration: measured
 # 0.88 at 3D N = 2000, 1.09 at 2D N = 8000), and a check fits only when the run's multipliers
 # leave the KKT residual within FIT_GAIN times its tolerance (the fit removed at most 20x of it
-# where it certified: docs/convergence.md, section 3h)
-FIT_SHARE, FIT_STEP_COST, FIT_GAIN = 0.2, 1.0, 20.0
+# where it certified: docs/convergence.md, section 3h) and the budget left allows at least
+# MIN_FIT_STEPS steps; a fit takes at most the budget left (one long fit gets further than
+# several short ones, each of which starts again from the run's multipliers: section 3l)
+FIT_SHARE, FIT_STEP_COST, FIT_GAIN, MIN_FIT_STEPS = 0.2, 1.0, 20.0, 250
 
 
 class Certifier:
@@ -109,22 +111,24 @@ class Certifier:
         # (the certificate at the end of the run is of that same state)
         m, _ = measures.measure(solver, overlap_a=False)
         now = fig["iteration"]
-        fit = (FIT_SHARE * now >= FIT_STEP_COST * self.fit_steps
-               and m["kkt_residual"] <= FIT_GAIN * self.stop.kkt)
-        self.last = {"iteration": now, "criteria": self.certificate(solver, now, m, fit=fit)}
+        budget = int((FIT_SHARE * now - FIT_STEP_COST * self.fit_steps) / FIT_STEP_COST)
+        fit = budget >= MIN_FIT_STEPS and m["kkt_residual"] <= FIT_GAIN * self.stop.kkt
+        self.last = {"iteration": now,
+                     "criteria": self.certificate(solver, now, m, fit=fit, max_steps=budget)}
         return all(c["ok"] for c in self.last["criteria"].values())
 
-    def certificate(self, solver, iteration, m, fit=True):
+    def certificate(self, solver, iteration, m, fit=True, max_steps=None):
         """The criteria of the configuration whose ``measure`` figures are m; with ``fit``, the
-        KKT residual is the best multipliers' (``measures.best_kkt``) when the run's own leave
-        it above stop.kkt while the other two criteria hold. The kkt entry also says which
-        multipliers gave it ("run" or "fitted") and the run's own residual."""
+        KKT residual is the best multipliers' (``measures.best_kkt``, at most max_steps fit
+        steps) when the run's own leave it above stop.kkt while the other two criteria hold.
+        The kkt entry also says which multipliers gave it ("run" or "fitted") and the run's
+        own residual."""
         st = self.stop
         kkt_run = kkt = m["kkt_residual"]
         crit = self.criteria(m["max_overlap"], kkt, self.w_change(iteration, m["W"]))
         multipliers = "run"
         if fit and not crit["kkt"]["ok"] and crit["overlap"]["ok"] and crit["settled"]["ok"]:
-            fitted, steps = measures.best_kkt(solver, m, st.kkt)
+            fitted, steps = measures.best_kkt(solver, m, st.kkt, max_steps)
             self.fit_steps += steps
             if fitted < kkt:
                 kkt, multipliers = fitted, "fitted"

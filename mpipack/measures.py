@@ -93,13 +93,15 @@ def multiplier_mode(s, finalize=False):
     return (kernels.LAMBDA_UPDATE if finalize else kernels.LAMBDA_PEEK), 0.0, 0.0
 
 
-def best_kkt(s, fig, target):
+def best_kkt(s, fig, target, max_steps=None):
     """The KKT residual of the current X with the best multipliers >= 0 on the pairs in contact
-    (``fit.best_kkt``), starting from the run's own; fig: this X's ``measure`` figures.
-    Returns (residual, fit steps). Collective; changes nothing in the state."""
+    (``fit.best_kkt``), starting from the run's own; fig: this X's ``measure`` figures;
+    max_steps: at most this many fit steps (None: the fit's own bound). Returns (residual,
+    fit steps). Collective; changes nothing in the state."""
     from . import fit
     mode, pen, floor = multiplier_mode(s)
-    return fit.best_kkt(s, mode, pen, floor, 2.0 * fig["W"], target)
+    return fit.best_kkt(s, mode, pen, floor, 2.0 * fig["W"], target,
+                        fit.MAX_STEPS if max_steps is None else max_steps)
 
 
 def finish(s):

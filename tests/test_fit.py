@@ -97,3 +97,54 @@ def test_no_contact_leaves_the_pull_of_w():
     s = solver_at(x, [1.0, 1.0])
     fig, _ = measures.measure(s, overlap_a=False)
     assert measures.best_kkt(s, fig, target=1e-2) == (1.0, 0)
+
+
+def test_the_fit_takes_no_more_steps_than_allowed():
+    """The certifier gives a fit the budget left (``max_steps``); the fit keeps to it and its
+    residual is that of an actual m >= 0 (never below the exact minimum)."""
+    rng = np.random.default_rng(1)
+    diam = rng.uniform(1.0, 1.5, 6)
+    x = rng.normal(scale=0.7, size=(6, 3))
+    s = solver_at(x, diam)
+    fig, _ = measures.measure(s, overlap_a=False)
+    exact, _ = exact_least_residual(x, diam, "S", s.scene.stop.overlap)
+    for cap in (1, 7, 40):
+        kkt, steps = measures.best_kkt(s, fig, target=0.0, max_steps=cap)
+        assert steps == cap and kkt >= exact - 1e-8
+
+
+def test_the_momentum_beats_plain_projected_gradient_steps(monkeypatch):
+    """A heap of 200 overlapping discs (a few hundred contacts): with FISTA's momentum the fit
+    gets further in 200 steps than the same steps with the momentum off (beta = 0
+    throughout; measured 1.3e-4 against 0.28)."""
+    from mpipack import fit
+    rng = np.random.default_rng(0)
+    n = 200
+    x = rng.uniform(-6.0, 6.0, size=(n, 2))
+    for _ in range(400):  # push overlapping pairs apart and pull all to the centre: a heap
+        dv = x[:, None, :] - x[None, :, :]
+        r = np.linalg.norm(dv, axis=2) + np.eye(n)
+        push = np.clip(1.0 - r, 0.0, None) * (1 - np.eye(n))
+        x += 0.3 * (push[:, :, None] * dv / r[:, :, None]).sum(1) - 0.01 * (x - x.mean(0))
+    s = solver_at(x, np.ones(n))
+    fig, _ = measures.measure(s, overlap_a=False)
+    with_momentum, steps = measures.best_kkt(s, fig, target=0.0, max_steps=200)
+    assert steps == 200
+
+    plain_step = kernels_fit_step_without_momentum(fit)
+    monkeypatch.setattr(fit.kernels_fit, "fit_kernels", plain_step)
+    plain, _ = measures.best_kkt(s, fig, target=0.0, max_steps=200)
+    assert with_momentum < 0.8 * plain, (with_momentum, plain)
+
+
+def kernels_fit_step_without_momentum(fit):
+    """fit_kernels whose step ignores beta (plain projected gradient steps)."""
+    original = fit.kernels_fit.fit_kernels
+
+    def kernels(form):
+        start, step, gradient = original(form)
+
+        def plain(x, n_local, po, pj, active, m, m_prev, g, xbar, length, beta, r, acc):
+            step(x, n_local, po, pj, active, m, m_prev, g, xbar, length, 0.0, r, acc)
+        return start, plain, gradient
+    return kernels
