@@ -44,14 +44,14 @@ MAX_STEPS = 2000  # the fit's steps at most
 STALL_STEPS, STALL_GAIN = 300, 0.01
 
 
-def best_kkt(s, mode, pen, lam_floor, gw2, target, max_steps=MAX_STEPS):
+def best_kkt(s, mode, pen, lam_floor, gw2, target, max_steps=None):
     """The least KKT residual over multipliers m >= 0 on the pairs in contact to
     s.scene.stop.overlap, starting from the run's own (``kernels.entry_multiplier`` in
     ``mode``, with ``pen`` and ``lam_floor`` for the fire-al schedule's force multipliers).
 
     s: the ``Solver`` (positions with fresh ghosts, pair rows, xbar); gw2 = ||grad W||^2 =
     sum_i |X_i - Xbar|^2 (reduced); target: stop as soon as the residual is at most this;
-    max_steps: at most this many steps (and at most MAX_STEPS). Returns (residual, steps
+    max_steps: at most this many steps (None: MAX_STEPS; never more). Returns (residual, steps
     taken). Changes nothing in the solver's state.
     """
     st, comm = s.state, s.comm
@@ -88,8 +88,9 @@ def best_kkt(s, mode, pen, lam_floor, gw2, target, max_steps=MAX_STEPS):
     length = 1.0 / lipschitz
     target2 = target * target * gw2
     history = [best]  # the least residual after each step
+    limit = MAX_STEPS if max_steps is None else min(max_steps, MAX_STEPS)
     steps, t, beta = 0, 1.0, 0.0
-    while steps < min(max_steps, MAX_STEPS) and best > target2:
+    while steps < limit and best > target2:
         # FISTA's momentum, restarted (t = 1) when the next step would turn back
         if red.value("turn") > 0.0:
             t, beta = 1.0, 0.0

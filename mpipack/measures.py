@@ -100,8 +100,7 @@ def best_kkt(s, fig, target, max_steps=None):
     fit steps). Collective; changes nothing in the state."""
     from . import fit
     mode, pen, floor = multiplier_mode(s)
-    return fit.best_kkt(s, mode, pen, floor, 2.0 * fig["W"], target,
-                        fit.MAX_STEPS if max_steps is None else max_steps)
+    return fit.best_kkt(s, mode, pen, floor, 2.0 * fig["W"], target, max_steps)
 
 
 def finish(s):
