@@ -24,3 +24,29 @@ def test_a_budget_runs_past_the_certified_stop(tmp_path):
                                                    sets=mpipack_side.budget_sets(budget), timeout=300)
     assert summary is not None, err
     assert summary["iterations"] == budget
+
+
+def ladder_args(chain, n0=200, max_iter=1500):
+    import argparse
+    return argparse.Namespace(ratio=1.5 ** (1.0 / 3.0), n0=n0, max_iter=max_iter, ladder_wall_limit=None,
+                              time_limit=None, run_timeout=300, verbose=False, chain=chain,
+                              overlap_tol=1e-3, w_tol=5e-3, lookback=1.0 / 3.0, window=3)
+
+
+def test_a_chained_ladder_passes_through_the_same_states(tmp_path):
+    """--chain: each budget continues the previous budget's checkpoint; the states scored are
+    those of the separate runs bit for bit, the time is the segments' loop seconds added up
+    (each less its checkpoint write)."""
+    plain, hit_plain, why_plain = mpipack_side.ladder(START, 1, ladder_args(False), str(tmp_path / "plain"))
+    chain, hit_chain, why_chain = mpipack_side.ladder(START, 1, ladder_args(True), str(tmp_path / "chain"))
+    assert why_plain == why_chain == "finish_line", (plain[-1], chain[-1])
+    assert [r["iterations"] for r in plain] == [r["iterations"] for r in chain]
+    assert len(chain) >= 4  # several segments, so restarts were exercised
+    for a, b in zip(plain, chain):
+        assert a["final"]["W"] == b["final"]["W"] and a["final"]["max_overlap"] == b["final"]["max_overlap"]
+    secs = [r["seconds"] for r in chain]
+    assert all(s2 > s1 for s1, s2 in zip(secs, secs[1:]))
+    assert abs(secs[-1] - sum(r["segment_seconds"] for r in chain)) < 1e-9
+    # every budget after the first continued the previous one's checkpoint; no plain one did
+    assert chain[0]["restart_from"] is None and all(r["restart_from"] for r in chain[1:])
+    assert not any(r["restart_from"] for r in plain)

@@ -67,7 +67,7 @@ def run_mpipack(start, ranks, out_json, timeout, args, workdir):
     if args.mpipack_mode == "budget":
         argv += ["--budget", str(args.mpipack_budget)]
     if args.mpipack_mode == "ladder":
-        argv += ["--n0", str(args.mpipack_n0)]
+        argv += ["--n0", str(args.mpipack_n0)] + (["--chain"] if args.mpipack_chain else [])
     if timeout:
         argv += ["--time-limit", str(timeout), "--run-timeout", str(2 * timeout + 600)]
     if args.mpipack_wall_limit:
@@ -77,8 +77,8 @@ def run_mpipack(start, ranks, out_json, timeout, args, workdir):
     argv += shlex.split(args.mpipack_args)
     t0 = time.perf_counter()
     try:
-        # a ladder runs ~8 times its last budget's time
-        factor = 12 if args.mpipack_mode == "ladder" else 4
+        # a ladder runs ~8 times its last budget's time (chained: once, plus a start-up per budget)
+        factor = 12 if args.mpipack_mode == "ladder" and not args.mpipack_chain else 4
         p = subprocess.run(argv, capture_output=True, text=True,
                            timeout=None if not timeout else factor * timeout + 1200)
         rc, err = p.returncode, p.stderr
@@ -145,6 +145,8 @@ def main(argv=None):
     p.add_argument("--mpipack-mode", choices=["ladder", "budget", "certified"], default="ladder")
     p.add_argument("--mpipack-budget", type=int, default=20000)
     p.add_argument("--mpipack-n0", type=int, default=500)
+    p.add_argument("--mpipack-chain", action="store_true",
+                   help="ladder mode: each budget continues the previous one's checkpoint (one run's cost)")
     p.add_argument("--mpipack-wall-limit", type=float, default=None,
                    help="ladder mode: wall seconds for all the runs of one ladder")
     p.add_argument("--mpipack-args", default="", help="extra options for mpipack_side.py")

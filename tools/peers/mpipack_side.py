@@ -17,7 +17,10 @@ Modes (the finish line is score.at_finish_line, exactly as for LAMMPS):
   score.settled asks); each run is scored from its dump, and the first budget at the finish
   line gives the time: the loop_seconds of that run (start-up excluded, as for LAMMPS).
   mpipack is deterministic, so the run with budget n passes through the states of the
-  shorter ones. Costs about 1/(1 - 1/r) ~ 8 times the final run; use it at small N.
+  shorter ones. Costs about 1/(1 - 1/r) ~ 8 times the final run; use it at small N. With
+  ``--chain`` each budget continues the previous budget's checkpoint (``mpipack run
+  --restart``, the same trajectory bit for bit): one run's cost plus a start-up per budget,
+  the time being the segments' loop seconds added up (each less its checkpoint write).
 - ``budget``: one run with --budget iterations, scored; "reached" says whether the end state
   is at the finish line by overlap (W settledness cannot be judged from one state: it is
   reported as unknown unless --verify runs a 1.5x longer budget to compare W).
@@ -105,11 +108,14 @@ def scene_sets(n, dim, sigma):
     return [f"n={n}", f"dim={dim}", f"init.sigma={sigma!r}"]
 
 
-def run_mpipack(start_meta, ranks, out_dir, dump, sets=(), timeout=None):
-    """One `mpipack run` of the start's scene with extra --set overrides. Returns
-    (exit code, summary dict or None, seconds of the whole process, stderr tail)."""
+def run_mpipack(start_meta, ranks, out_dir, dump, sets=(), timeout=None, restart=None):
+    """One `mpipack run` of the start's scene with extra --set overrides (with ``restart``, a
+    run folder: continue its checkpoint, bit for bit the uninterrupted run's trajectory).
+    Returns (exit code, summary dict or None, seconds of the whole process, stderr tail)."""
     env = mpipack_env()
     argv = mpirun_prefix(ranks, env) + mpipack_command() + ["run"]
+    if restart is not None:
+        argv += ["--restart", restart]
     for s in scene_sets(start_meta["n"], start_meta["dim"], start_meta["sigma"]) + list(sets):
         argv += ["--set", s]
     argv += ["--seed", str(start_meta["seed"]), "--out", out_dir, "--quiet"]
@@ -188,14 +194,23 @@ def make_start(n, dim, sigma, seed, path, method="run", ranks=1, timeout=None):
 
 # ==== the benchmark side ===========================================================================
 
-def scored_run(meta, ranks, iters, workdir, timeout, sets=None):
-    """Run a budget (or the given sets), score the dump; a record or an error record."""
+def scored_run(meta, ranks, iters, workdir, timeout, sets=None, chain=False):
+    """Run a budget (or the given sets), score the dump; a record or an error record.
+
+    With ``chain`` the budgets share one run folder, ``workdir/chain``: a budget continues
+    the previous budget's checkpoint (written when a budget ends at stop.max_iter) instead of
+    starting again, so a ladder costs one run; its "seconds" are then that segment's loop
+    seconds only (the caller adds them up)."""
     tag = f"it{iters}" if iters is not None else "run"
-    out = os.path.join(workdir, tag)
+    out = os.path.join(workdir, "chain" if chain else tag)
     dump = os.path.join(workdir, f"{tag}.npz")
-    rc, summary, wall, err = run_mpipack(meta, ranks, out, dump,
-                                         sets=sets if sets is not None else budget_sets(iters),
-                                         timeout=timeout)
+    restart = out if chain and os.path.exists(os.path.join(out, "checkpoint.h5")) else None
+    run_sets = list(sets if sets is not None else budget_sets(iters))
+    if chain:
+        # a budget run ends with exit 0 and no checkpoint: ask for one at its last iteration
+        run_sets.append(f"output.checkpoint_every={int(iters)}")
+    rc, summary, wall, err = run_mpipack(meta, ranks, out, dump, sets=run_sets,
+                                         timeout=timeout, restart=restart)
     if summary is None or not os.path.exists(dump):
         return {"iterations": iters, "error": f"exit {rc}", "stderr": err}
     if sets is None and iterations(summary) != iters:
@@ -206,9 +221,18 @@ def scored_run(meta, ranks, iters, workdir, timeout, sets=None):
     d = np.load(dump)
     fig = score.score(d["x"], d["diam"])
     os.remove(dump)
-    return {"iterations": iterations(summary), "seconds": loop_seconds(summary),
+    seconds = loop_seconds(summary)
+    if chain:
+        # the checkpoint that the next budget continues from is written inside the loop; the
+        # uninterrupted run would not write it
+        ck = summary.get("checkpoint") or {}
+        if ck.get("iteration") != iters:
+            return {"iterations": iters, "error": f"budget {iters} left no checkpoint to continue", "stderr": err}
+        seconds -= float(ck.get("write_seconds") or 0.0)
+    return {"iterations": iterations(summary), "seconds": seconds,
             "setup_seconds": summary.get("setup_seconds"), "process_seconds": wall,
             "exit": rc, "converged": summary.get("converged"), "summary_max_overlap": summary.get("max_overlap"),
+            "restart_from": summary.get("restart_from"),
             "final": fig}
 
 
@@ -223,12 +247,19 @@ def ladder(meta, ranks, args, workdir):
         b *= r
     runs, its, Ws = [], [], []
     t_start = time.perf_counter()
+    chained = 0.0  # --chain: the loop seconds of the segments before this one
+    if args.chain:
+        shutil.rmtree(os.path.join(workdir, "chain"), ignore_errors=True)  # never continue an old run
     for k in budgets:
         if args.ladder_wall_limit and time.perf_counter() - t_start > args.ladder_wall_limit:
             return runs, None, "ladder_wall_limit"
         if runs and args.time_limit and runs[-1].get("seconds", 0.0) > args.time_limit:
             return runs, None, "time_limit"
-        rec = scored_run(meta, ranks, k, workdir, args.run_timeout)
+        rec = scored_run(meta, ranks, k, workdir, args.run_timeout, chain=args.chain)
+        if args.chain and "seconds" in rec:
+            rec["segment_seconds"] = rec["seconds"]
+            chained += rec["seconds"]
+            rec["seconds"] = chained
         runs.append(rec)
         if args.verbose:
             f = rec.get("final", {})
@@ -251,6 +282,9 @@ def main(argv=None):
     p.add_argument("--budget", type=int, default=20000, help="--mode budget: iterations")
     p.add_argument("--n0", type=int, default=500, help="--mode ladder: first budget")
     p.add_argument("--ratio", type=float, default=1.5 ** (1.0 / 3.0), help="--mode ladder: budget ratio")
+    p.add_argument("--chain", action="store_true",
+                   help="--mode ladder: each budget continues the previous one's checkpoint (one run's "
+                        "cost instead of ~8; the time is the sum of the segments' loop seconds)")
     p.add_argument("--max-iter", type=int, default=2_000_000)
     p.add_argument("--overlap-tol", type=float, default=score.OVERLAP_TOL)
     p.add_argument("--w-tol", type=float, default=score.W_TOL)
@@ -282,7 +316,7 @@ def main(argv=None):
                     "ladder": [{k: r.get(k) for k in ("iterations", "seconds", "error")} |
                                {"max_overlap": r.get("final", {}).get("max_overlap"),
                                 "W_over_N2": r.get("final", {}).get("W_over_N2")} for r in runs],
-                    "protocol": {"ratio": args.ratio, "n0": args.n0, "lookback": args.lookback,
+                    "protocol": {"ratio": args.ratio, "n0": args.n0, "chain": args.chain, "lookback": args.lookback,
                                  "window": args.window, "w_tol": args.w_tol, "overlap_tol": args.overlap_tol}})
     else:
         if args.mode == "certified":
