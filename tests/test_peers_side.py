@@ -6,6 +6,8 @@ state again and again, and the look-back of the finish line would never be met).
 import os
 import sys
 
+import pytest
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(os.path.dirname(HERE), "tools", "peers"))
 import mpipack_side  # noqa: E402
@@ -33,12 +35,19 @@ def ladder_args(chain, n0=200, max_iter=1500):
                               overlap_tol=1e-3, w_tol=5e-3, lookback=1.0 / 3.0, window=3)
 
 
-def test_a_chained_ladder_passes_through_the_same_states(tmp_path):
+@pytest.fixture(scope="module")
+def plain_ladder(tmp_path_factory):
+    return mpipack_side.ladder(START, 1, ladder_args(False), str(tmp_path_factory.mktemp("plain")))
+
+
+@pytest.mark.parametrize("ranks", [1, 3])
+def test_a_chained_ladder_passes_through_the_same_states(plain_ladder, ranks, tmp_path):
     """--chain: each budget continues the previous budget's checkpoint; the states scored are
-    those of the separate runs bit for bit, the time is the segments' loop seconds added up
-    (each less its checkpoint write)."""
-    plain, hit_plain, why_plain = mpipack_side.ladder(START, 1, ladder_args(False), str(tmp_path / "plain"))
-    chain, hit_chain, why_chain = mpipack_side.ladder(START, 1, ladder_args(True), str(tmp_path / "chain"))
+    those of the separate 1-rank runs bit for bit (on 3 ranks too: restarts and results are
+    rank-count independent), the time is the segments' loop seconds added up (each less its
+    checkpoint write)."""
+    plain, hit_plain, why_plain = plain_ladder
+    chain, hit_chain, why_chain = mpipack_side.ladder(START, ranks, ladder_args(True), str(tmp_path / "chain"))
     assert why_plain == why_chain == "finish_line", (plain[-1], chain[-1])
     assert [r["iterations"] for r in plain] == [r["iterations"] for r in chain]
     assert len(chain) >= 4  # several segments, so restarts were exercised
