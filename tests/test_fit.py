@@ -4,6 +4,7 @@ active sets (small clusters, one rank, in-process). Its rank-count independence 
 tests/test_parallel.py (a certified run whose KKT residual is the fit's, on 1, 2 and 3 ranks)."""
 
 import itertools
+import math
 
 import numpy as np
 import pytest
@@ -148,3 +149,39 @@ def kernels_fit_step_without_momentum(fit):
             step(x, n_local, po, pj, active, m, m_prev, g, xbar, length, 0.0, r, acc)
         return start, plain, gradient
     return kernels
+
+
+def test_the_certifier_gives_the_first_fit_less_budget_than_later_ones(monkeypatch):
+    """The fits' budget is a fifth of the run's iterations less the steps spent: the first fit
+    of a run needs FIRST_FIT_STEPS of it (250: short runs are certified by a fit), every later
+    one MIN_FIT_STEPS (500: 250-step fits left 3D N = 1e5 uncertified); each takes the budget
+    left. Checked with a stand-in for the metrics pass and for a fit that never certifies."""
+    from mpipack import certify
+    from mpipack.config import Stop
+    stop = Stop(rule="certified", eps=0.0, max_iter=100000, max_seconds=math.inf, overlap=1e-3,
+                kkt=1e-2, w_rtol=1e-4, w_window=0.1, check_every=50, watchdog=True)
+    fits = []
+    monkeypatch.setattr(measures, "measure", lambda s, **kw: (
+        {"kkt_residual": 0.05, "max_overlap": 0.0, "W": 1.0}, None))
+    monkeypatch.setattr(measures, "best_kkt", lambda s, m, target, max_steps: (
+        fits.append(max_steps) or 0.05, max_steps))
+    cert = certify.Certifier(stop)
+
+    recorded = [0]
+
+    def check(iteration):
+        for i in range(recorded[0], iteration):
+            cert.record(i, 1.0)  # W settled
+        recorded[0] = iteration
+        return cert.check(None, {"iteration": iteration, "W": 1.0, "max_overlap": 0.0})
+
+    assert certify.FIRST_FIT_STEPS < certify.MIN_FIT_STEPS
+    first = int(certify.FIRST_FIT_STEPS / certify.FIT_SHARE)  # the budget reaches 250 here
+    assert not check(first - 50) and fits == []  # 240 steps of budget: no fit yet
+    assert not check(first) and fits == [certify.FIRST_FIT_STEPS]  # the first fit, 250 steps
+    spent = certify.FIRST_FIT_STEPS
+    # later fits wait for MIN_FIT_STEPS of budget, not FIRST_FIT_STEPS
+    later = int((certify.MIN_FIT_STEPS + spent) / certify.FIT_SHARE)
+    assert not check(later - 50) and fits == [certify.FIRST_FIT_STEPS]
+    assert not check(later) and fits == [certify.FIRST_FIT_STEPS, certify.MIN_FIT_STEPS]
+    assert cert.fit_steps == certify.FIRST_FIT_STEPS + certify.MIN_FIT_STEPS

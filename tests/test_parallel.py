@@ -232,10 +232,8 @@ def test_not_converged_exits_4(run_mpipack):
 # ---------------------------------------------------------------------------------------------
 def test_certified_by_fitted_multipliers_on_1_2_3_ranks(run_mpipack):
     """A run certified by the multiplier fit (2D N = 2000 seed 5, certified at 2650: the run's own
-    multipliers leave a KKT residual of 0.032 at the stop, the fitted ones 0.0072; a fit needs
-    certify.MIN_FIT_STEPS = 500 steps of budget, a fifth of 2500 iterations, so shorter runs
-    certify by their own multipliers or not yet): the same stop, certificate and packing, bit
-    for bit, on 1, 2 and 3 ranks."""
+    multipliers leave a KKT residual of 0.032 at the stop, the fitted ones 0.0072): the same
+    stop, certificate and packing, bit for bit, on 1, 2 and 3 ranks."""
     runs = {}
     for P in (1, 2, 3):
         proc, s, d = run_mpipack(P, None, ["seed=5"], dump=True)
