@@ -37,12 +37,11 @@ MIN_WINDOW = 1
 # 0.88 at 3D N = 2000, 1.09 at 2D N = 8000), and a check fits only when the run's multipliers
 # leave the KKT residual within FIT_GAIN times its tolerance (the fit removed at most 20x of it
 # where it certified: docs/convergence.md, section 3h) and the budget left allows at least
-# MIN_FIT_STEPS steps; a fit takes at most the budget left (one long fit gets further than
-# several short ones, each of which starts again from the run's multipliers: section 3l). Once
-# the budget is spent, every later fit has MIN_FIT_STEPS steps: 250 left 3D N = 1e5 uncertified
-# at 93000 iterations where 500 spectral steps had certified it at 90000 (section 3m). The
-# first fit of a run needs only FIRST_FIT_STEPS: a short run (a fifth of 1250 - 2500
-# iterations) is then certified by a fit as with 250 (section 3n)
+# FIRST_FIT_STEPS steps for a run's first fit, MIN_FIT_STEPS for every later one (250 certifies
+# short runs, a fifth of 1250 - 2500 iterations, by a fit: section 3n; but once the budget is
+# spent, 250-step fits left 3D N = 1e5 uncertified at 93000 iterations where 500 had certified
+# it: section 3m); a fit takes at most the budget left (one long fit gets further than several
+# short ones, each of which starts again from the run's multipliers: section 3l)
 FIT_SHARE, FIT_STEP_COST, FIT_GAIN, MIN_FIT_STEPS, FIRST_FIT_STEPS = 0.2, 1.0, 20.0, 500, 250
 
 

@@ -166,7 +166,6 @@ def test_the_certifier_gives_the_first_fit_less_budget_than_later_ones(monkeypat
     monkeypatch.setattr(measures, "best_kkt", lambda s, m, target, max_steps: (
         fits.append(max_steps) or 0.05, max_steps))
     cert = certify.Certifier(stop)
-
     recorded = [0]
 
     def check(iteration):
