@@ -33,9 +33,13 @@ def _searchsorted_left(a, v):
 
 @njit(cache=True)
 def cell_keys(x, n, h):
-    """Integer cell coordinates of x[:n] in cells of size h.
+    """Integer cell coordinates of x[:n] in cells of size h (or larger: see below).
 
     Returns (keys int64 (n,), lo float64 (b,), dims int64 (b,)); key = sum_k c_k * stride_k.
+    A cloud so spread out that the cell count would overflow the int64 key (more than 2^62
+    cells: in 3D an extent of ~1.6e6 cells per axis) gets cells doubled in size until it
+    fits: the 3^b cells around a sphere then still hold every partner within h, so the rows
+    stay exact (without it the keys wrapped and far-apart cells aliased, losing pairs).
     """
     b = x.shape[1]
     lo = np.full(b, np.inf)
@@ -48,8 +52,15 @@ def cell_keys(x, n, h):
             if v > hi[k]:
                 hi[k] = v
     dims = np.ones(b, dtype=np.int64)
-    for k in range(b):
-        if n > 0:
+    if n > 0:
+        while True:
+            cells = 1.0
+            for k in range(b):
+                cells *= np.floor((hi[k] - lo[k]) / h) + 1.0
+            if cells <= 2.0 ** 62 or not cells < np.inf:  # (inf or NaN coordinates: as before)
+                break
+            h *= 2.0
+        for k in range(b):
             dims[k] = np.int64((hi[k] - lo[k]) / h) + 1
     keys = np.empty(n, dtype=np.int64)
     for i in range(n):
@@ -90,15 +101,22 @@ def _cell_index(keys, n_cells_dense):
     return order, keys[order], np.zeros(0, dtype=np.int64)
 
 
-@njit(cache=True, inline="always")
-def _cell_range(nkey, skeys, cell_start):
+@njit(cache=True)
+def _max_occupancy(skeys, cell_start):
+    """The most particles in one cell (dense: from cell_start; sparse: the longest run of equal
+    sorted keys)."""
+    most = 0
     if cell_start.shape[0] > 0:
-        return cell_start[nkey], cell_start[nkey + 1]
-    s = _searchsorted_left(skeys, nkey)
-    e = s
-    while e < skeys.shape[0] and skeys[e] == nkey:
-        e += 1
-    return s, e
+        for c in range(cell_start.shape[0] - 1):
+            if cell_start[c + 1] - cell_start[c] > most:
+                most = cell_start[c + 1] - cell_start[c]
+        return most
+    run = 0
+    for q in range(skeys.shape[0]):
+        run = run + 1 if q > 0 and skeys[q] == skeys[q - 1] else 1
+        if run > most:
+            most = run
+    return most
 
 
 @njit(cache=True, inline="always")
@@ -115,6 +133,12 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
     made ghosts before the build; the caller treats missing > 0 as an error). If the rows would
     hold more than max_entries entries the build stops early and missing is -1: a start so
     dense that the rows would not fit in memory is reported, not attempted.
+
+    Each row is assembled in buffers sized once for the worst row (3^b cells of the fullest
+    occupancy, plus the longest history) and sorted by partner gid; history partners already
+    among the candidates take their lambda, the others (far partners) are inserted. No buffer is reallocated inside the
+    candidate loop: numba then keeps the arrays in registers (a reallocation there made the
+    build 4x slower).
     """
     pair_offsets = np.zeros(n_local + 1, dtype=np.int64)
     if n_local == 0:
@@ -133,15 +157,6 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
             break
         n_cells *= dims[k]
     order, skeys, cell_start = _cell_index(keys, n_cells if dense else 0)
-    # gid -> index lookup, needed only for history partners
-    n_hist = hist_offsets[n_local]
-    if n_hist > 0:
-        gorder = np.argsort(gid[:n_total])
-        sgid = gid[:n_total][gorder]
-    else:
-        gorder = np.empty(0, dtype=np.int64)
-        sgid = np.empty(0, dtype=np.int64)
-
     n_nb = 3 ** b
     offs = np.empty((n_nb, b), dtype=np.int64)
     for m in range(n_nb):
@@ -149,14 +164,24 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
         for k in range(b):
             offs[m, k] = t % 3 - 1
             t //= 3
+    # the longest row: every particle of the 3^b cells around (at most all of them), plus the
+    # longest history
+    most_hist = 0
+    for i in range(n_local):
+        if hist_offsets[i + 1] - hist_offsets[i] > most_hist:
+            most_hist = hist_offsets[i + 1] - hist_offsets[i]
+    row_cap = min(n_nb * _max_occupancy(skeys, cell_start), n_total) + most_hist + 1
+    row_g = np.empty(row_cap, dtype=np.int64)
+    row_j = np.empty(row_cap, dtype=np.int64)
+    row_l = np.empty(row_cap)
+    # gid -> index lookup, built only when a history partner is not among the candidates
+    sgid = np.empty(0, dtype=np.int64)
+    gorder = np.empty(0, dtype=np.int64)
+    have_lookup = False
 
     cap = min(max(16, n_local * 8), max(16, max_entries))
     pair_j = np.empty(cap, dtype=np.int32)
     pair_lambda = np.empty(cap)
-    tmp_cap = 64
-    tmp_j = np.empty(tmp_cap, dtype=np.int64)
-    tmp_g = np.empty(tmp_cap, dtype=np.int64)
-    tmp_l = np.empty(tmp_cap)
     coord = np.empty(b, dtype=np.int64)
     missing = 0
     pos = 0
@@ -177,9 +202,16 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
                 nkey = nkey * dims[k] + c
             if not ok:
                 continue
-            s, e_end = _cell_range(nkey, skeys, cell_start)
-            for s in range(s, e_end):
-                j = order[s]
+            if dense:
+                s0 = cell_start[nkey]
+                s1 = cell_start[nkey + 1]
+            else:
+                s0 = _searchsorted_left(skeys, nkey)
+                s1 = s0
+                while s1 < skeys.shape[0] and skeys[s1] == nkey:
+                    s1 += 1
+            for q in range(s0, s1):
+                j = order[q]
                 if j == i:
                     continue
                 r2 = 0.0
@@ -188,33 +220,35 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
                     r2 += dx * dx
                 rc = 0.5 * (diam[i] + diam[j]) + skin
                 if r2 < rc * rc:
-                    if cnt == tmp_cap:
-                        tmp_cap *= 2
-                        tmp_j = _grow_i(tmp_j, tmp_cap)
-                        tmp_g = _grow_i(tmp_g, tmp_cap)
-                        tmp_l = _grow_f(tmp_l, tmp_cap)
-                    tmp_j[cnt] = j
-                    tmp_g[cnt] = gid[j]
-                    tmp_l[cnt] = 0.0
+                    row_g[cnt] = gid[j]
+                    row_j[cnt] = j
                     cnt += 1
+        _sort_row(row_g, row_j, cnt)
+        for q in range(cnt):
+            row_l[q] = 0.0
         for e in range(hist_offsets[i], hist_offsets[i + 1]):
             g = hist_gid[e]
+            q = _searchsorted_left(row_g[:cnt], g)
+            if q < cnt and row_g[q] == g:  # a candidate (or a repeated partner): the larger lambda
+                if hist_lambda[e] > row_l[q]:
+                    row_l[q] = hist_lambda[e]
+                continue
+            if not have_lookup:
+                gorder = np.argsort(gid[:n_total])
+                sgid = gid[:n_total][gorder]
+                have_lookup = True
             s = _searchsorted_left(sgid, g)
             if s >= n_total or sgid[s] != g:
                 missing += 1
                 continue
-            if cnt == tmp_cap:
-                tmp_cap *= 2
-                tmp_j = _grow_i(tmp_j, tmp_cap)
-                tmp_g = _grow_i(tmp_g, tmp_cap)
-                tmp_l = _grow_f(tmp_l, tmp_cap)
-            tmp_j[cnt] = gorder[s]
-            tmp_g[cnt] = g
-            tmp_l[cnt] = hist_lambda[e]
+            for c in range(cnt, q, -1):
+                row_g[c] = row_g[c - 1]
+                row_j[c] = row_j[c - 1]
+                row_l[c] = row_l[c - 1]
+            row_g[q] = g
+            row_j[q] = gorder[s]
+            row_l[q] = hist_lambda[e]
             cnt += 1
-        # sort the row by partner gid (insertion sort: rows are short), merge duplicates (a
-        # history partner that is also a candidate keeps its lambda)
-        _sort_row(tmp_g, tmp_j, tmp_l, cnt)
         if pos + cnt > max_entries:
             return pair_offsets, pair_j[:0].copy(), pair_lambda[:0].copy(), -1
         if pos + cnt > cap:
@@ -222,13 +256,9 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
             pair_j = _grow_i32(pair_j, cap)
             pair_lambda = _grow_f(pair_lambda, cap)
         for q in range(cnt):
-            if q > 0 and tmp_g[q] == tmp_g[q - 1]:
-                if tmp_l[q] > pair_lambda[pos - 1]:
-                    pair_lambda[pos - 1] = tmp_l[q]
-                continue
-            pair_j[pos] = tmp_j[q]
-            pair_lambda[pos] = tmp_l[q]
-            pos += 1
+            pair_j[pos + q] = row_j[q]
+            pair_lambda[pos + q] = row_l[q]
+        pos += cnt
         pair_offsets[i + 1] = pos
     return pair_offsets, pair_j[:pos].copy(), pair_lambda[:pos].copy(), missing
 
@@ -261,27 +291,24 @@ def build_rows(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, his
 
 
 @njit(cache=True)
-def _sort_row(g, j, lam, n):
-    """Sort g[:n] ascending, permuting j and lam alike (insertion sort; argsort when long)."""
+def _sort_row(g, j, n):
+    """Sort g[:n] ascending, permuting j alike (insertion sort; argsort when long: a start
+    with many coincident spheres has rows of thousands)."""
     if n > 48:
         o = np.argsort(g[:n])
         g[:n] = g[:n][o]
         j[:n] = j[:n][o]
-        lam[:n] = lam[:n][o]
         return
     for a in range(1, n):
         kg = g[a]
         kj = j[a]
-        kl = lam[a]
         c = a - 1
         while c >= 0 and g[c] > kg:
             g[c + 1] = g[c]
             j[c + 1] = j[c]
-            lam[c + 1] = lam[c]
             c -= 1
         g[c + 1] = kg
         j[c + 1] = kj
-        lam[c + 1] = kl
 
 
 @njit(cache=True)
@@ -289,13 +316,6 @@ def spatial_order(x, n, h):
     """A permutation of x[:n] that visits cells of size h in row-major order (cache locality)."""
     keys, lo, dims = cell_keys(x, n, h)
     return np.argsort(keys, kind="mergesort")
-
-
-@njit(cache=True)
-def _grow_i(a, n):
-    out = np.empty(n, dtype=np.int64)
-    out[: a.shape[0]] = a
-    return out
 
 
 @njit(cache=True)

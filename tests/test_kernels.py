@@ -392,3 +392,54 @@ def test_build_rows_keeps_history():
         assert lam0[near[0]] == 0.5
     assert sum(v > 0 for v in lam0.values()) == len(hist) - 1
     assert np.all(pl[off[1]:] == 0.0)
+
+
+@pytest.mark.parametrize("dim", [1, 2, 3])
+def test_build_rows_history_sparse_grid_and_crowded_cells(dim):
+    """Rows against brute force where the build takes its less common paths: a cloud spread so
+    wide that the cell grid is searched instead of indexed, a crowd of coincident spheres in
+    one cell (the longest row), histories out of gid order with repeated, far and absent
+    partners (lambda: the largest of a partner's entries), and the entry cap."""
+    rng = np.random.default_rng(70 + dim)
+    n, n_local = 120, 90
+    x = np.concatenate([rng.normal(size=(60, dim)),                 # a dense core
+                        rng.uniform(-1e7, 1e7, size=(50, dim)),     # far apart: sparse grid
+                        np.zeros((10, dim))])                       # coincident: one full cell
+    x = x[rng.permutation(n)]
+    diam = rng.uniform(0.6, 1.3, size=n)
+    gid = (rng.permutation(n) * 7 + 3).astype(np.int64)
+    skin = 0.3
+    want = brute_rows(x, n_local, gid, diam, skin)
+    h_off = np.zeros(n_local + 1, np.int64)
+    h_gid, h_lam, best, missing_want = [], [], [], 0
+    for i in range(n_local):
+        lam_of = {}
+        for _ in range(int(rng.integers(0, 7))):
+            if rng.random() < 0.85:
+                g = int(gid[rng.integers(0, n)])
+                if g == gid[i]:
+                    continue
+                lam_of[g] = max(lam_of.get(g, 0.0), lam := float(rng.uniform(0.1, 1.0)))
+            else:
+                g, lam = 10 ** 9 + int(rng.integers(0, 3)), 0.5  # present nowhere
+                missing_want += 1
+            h_gid.append(g)
+            h_lam.append(lam)
+        h_off[i + 1] = len(h_gid)
+        best.append(lam_of)
+    h_gid, h_lam = np.array(h_gid, np.int64), np.array(h_lam)
+    off, pj, pl, missing = neighbors.build_rows(x, n_local, n, gid, diam, skin, h_off, h_gid, h_lam)
+    assert missing == missing_want
+    got = rows_as_gids(off, pj, gid)
+    for i in range(n_local):
+        assert got[i] == sorted(set(want[i]) | set(best[i])), f"row {i}"
+        lam = dict(zip(got[i], pl[off[i]:off[i + 1]]))
+        assert lam == {g: best[i].get(g, 0.0) for g in got[i]}, f"row {i}"
+    assert max(len(r) for r in got) >= 9, "test set-up: the crowded cell gives long rows"
+    # the entry cap: refused (-1), never truncated
+    capped = neighbors.build_rows(x, n_local, n, gid, diam, skin, h_off, h_gid, h_lam,
+                                  max_entries=int(off[-1]) - 1)
+    assert capped[3] == -1
+    exact = neighbors.build_rows(x, n_local, n, gid, diam, skin, h_off, h_gid, h_lam,
+                                 max_entries=int(off[-1]))
+    assert exact[3] == missing_want and np.array_equal(exact[1], pj)
