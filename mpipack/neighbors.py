@@ -313,9 +313,17 @@ def _sort_row(g, j, n):
 
 @njit(cache=True)
 def spatial_order(x, n, h):
-    """A permutation of x[:n] that visits cells of size h in row-major order (cache locality)."""
+    """A permutation of x[:n] that visits cells of size h in row-major order (cache locality),
+    stable within a cell: a counting sort over the cells when the grid is at most a few cells
+    per particle (as in the rows' build), else a merge sort of the keys (the same order)."""
     keys, lo, dims = cell_keys(x, n, h)
-    return np.argsort(keys, kind="mergesort")
+    n_cells = np.int64(1)
+    for k in range(x.shape[1]):
+        if dims[k] > 4 * n + 64 or n_cells * dims[k] > 4 * n + 64:
+            return np.argsort(keys, kind="mergesort")
+        n_cells *= dims[k]
+    order, _, _ = _cell_index(keys, n_cells)
+    return order
 
 
 @njit(cache=True)

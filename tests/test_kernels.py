@@ -443,3 +443,15 @@ def test_build_rows_history_sparse_grid_and_crowded_cells(dim):
     exact = neighbors.build_rows(x, n_local, n, gid, diam, skin, h_off, h_gid, h_lam,
                                  max_entries=int(off[-1]))
     assert exact[3] == missing_want and np.array_equal(exact[1], pj)
+
+
+@pytest.mark.parametrize("dim", [1, 2, 3])
+def test_spatial_order_is_a_stable_sort_by_cell(dim):
+    """The counting sort (a grid of a few cells per particle) and the merge sort (a sparse
+    grid) give the stable order of the cell keys."""
+    rng = np.random.default_rng(90 + dim)
+    for spread in (0.5, 5.0, 1e6):
+        x = rng.normal(size=(300, dim)) * spread
+        keys, _, _ = neighbors.cell_keys(x, 300, 1.3)
+        assert np.array_equal(neighbors.spatial_order(x, 300, 1.3), np.argsort(keys, kind="mergesort"))
+    assert neighbors.spatial_order(np.zeros((0, dim)), 0, 1.3).shape == (0,)
