@@ -134,11 +134,11 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
     hold more than max_entries entries the build stops early and missing is -1: a start so
     dense that the rows would not fit in memory is reported, not attempted.
 
-    Each row is assembled in buffers sized once for the worst row (3^b cells of the fullest
-    occupancy, plus the longest history) and sorted by partner gid; history partners already
-    among the candidates take their lambda, the others (far partners) are inserted. No buffer is reallocated inside the
-    candidate loop: numba then keeps the arrays in registers (a reallocation there made the
-    build 4x slower).
+    Each row is assembled in buffers sized once for the longest possible row (3^b cells of
+    the fullest occupancy, at most all particles, plus the longest history) and sorted by
+    partner gid; history partners already among the candidates take their lambda, the others
+    (far partners) are inserted. No buffer is reallocated inside the candidate loop: growable
+    buffers there made the build 4x slower (measured: docs/convergence.md, section 3o).
     """
     pair_offsets = np.zeros(n_local + 1, dtype=np.int64)
     if n_local == 0:
