@@ -75,6 +75,18 @@ def cell_keys(x, n, h):
 
 
 @njit(cache=True)
+def dense_cells(dims, n):
+    """The number of cells of the grid ``dims`` when it is small enough to index directly (at
+    most 4 n + 64 cells for n particles), else 0 (a sparse cloud: cells found by search)."""
+    n_cells = np.int64(1)
+    for k in range(dims.shape[0]):
+        if dims[k] > 4 * n + 64 or n_cells * dims[k] > 4 * n + 64:
+            return np.int64(0)
+        n_cells *= dims[k]
+    return n_cells
+
+
+@njit(cache=True)
 def _cell_index(keys, n_cells_dense):
     """Particles sorted by cell key, and a way to find each cell's members.
 
@@ -149,14 +161,9 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
             dmax = diam[i]
     h = dmax + skin
     keys, lo, dims = cell_keys(x, n_total, h)
-    n_cells = np.int64(1)
-    dense = True
-    for k in range(b):
-        if dims[k] > 4 * n_total + 64 or n_cells * dims[k] > 4 * n_total + 64:
-            dense = False
-            break
-        n_cells *= dims[k]
-    order, skeys, cell_start = _cell_index(keys, n_cells if dense else 0)
+    n_cells = dense_cells(dims, n_total)
+    dense = n_cells > 0
+    order, skeys, cell_start = _cell_index(keys, n_cells)
     n_nb = 3 ** b
     offs = np.empty((n_nb, b), dtype=np.int64)
     for m in range(n_nb):
@@ -317,11 +324,9 @@ def spatial_order(x, n, h):
     stable within a cell: a counting sort over the cells when the grid is at most a few cells
     per particle (as in the rows' build), else a merge sort of the keys (the same order)."""
     keys, lo, dims = cell_keys(x, n, h)
-    n_cells = np.int64(1)
-    for k in range(x.shape[1]):
-        if dims[k] > 4 * n + 64 or n_cells * dims[k] > 4 * n + 64:
-            return np.argsort(keys, kind="mergesort")
-        n_cells *= dims[k]
+    n_cells = dense_cells(dims, n)
+    if n_cells == 0:
+        return np.argsort(keys, kind="mergesort")
     order, _, _ = _cell_index(keys, n_cells)
     return order
 
