@@ -35,23 +35,6 @@ N_FIT_MAX = 1
 
 
 @njit(cache=True, inline="always")
-def _grad(form, x, i, j, out):
-    """grad_{X_i} phi_ij into out: -2 (X_i - X_j) (S) or -(X_i - X_j) / |X_i - X_j| (NS)."""
-    dim = x.shape[1]
-    r2 = 0.0
-    for k in range(dim):
-        out[k] = x[i, k] - x[j, k]
-        r2 += out[k] * out[k]
-    if form == SMOOTH:
-        for k in range(dim):
-            out[k] = -2.0 * out[k]
-    else:
-        r = np.sqrt(r2)
-        for k in range(dim):
-            out[k] = -out[k] / r if r > 0.0 else 0.0
-
-
-@njit(cache=True, inline="always")
 def _start(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, beta, lambda_mode,
            lam_scale, pen, lam_floor, contact_tol, m, active):
     dim = x.shape[1]
@@ -79,71 +62,117 @@ def start_ns(x, n_local, diam, po, pj, pl, beta, mode, scale, pen, floor, tol, m
     _start(NONSMOOTH, x, n_local, diam, po, pj, pl, beta, mode, scale, pen, floor, tol, m, active)
 
 
+@njit(cache=True)
+def contacts(pair_offsets, n_local, active):
+    """The active entries as rows of their own: (c_offsets (n_local+1,), c_src (n_contacts,)
+    int64, the entries' positions in the pair rows), each row in its original order."""
+    c_offsets = np.zeros(n_local + 1, dtype=np.int64)
+    for i in range(n_local):
+        count = 0
+        for e in range(pair_offsets[i], pair_offsets[i + 1]):
+            if active[e]:
+                count += 1
+        c_offsets[i + 1] = c_offsets[i] + count
+    c_src = np.empty(c_offsets[n_local], dtype=np.int64)
+    c = 0
+    for i in range(n_local):
+        for e in range(pair_offsets[i], pair_offsets[i + 1]):
+            if active[e]:
+                c_src[c] = e
+                c += 1
+    return c_offsets, c_src
+
+
 @njit(cache=True, inline="always")
-def _step(form, x, n_local, pair_offsets, pair_j, active, m, m_prev, g, xbar, step, beta, r, acc):
+def _grad(form, x, i, j):
+    """grad_{X_i} phi_ij as three scalars: -2 (X_i - X_j) (S) or -(X_i - X_j) / |X_i - X_j|
+    (NS); the coordinates beyond x's dimension are 0."""
+    dim = x.shape[1]
+    g0 = x[i, 0] - x[j, 0]
+    g1 = x[i, 1] - x[j, 1] if dim > 1 else 0.0
+    g2 = x[i, 2] - x[j, 2] if dim > 2 else 0.0
+    if form == SMOOTH:
+        return -2.0 * g0, -2.0 * g1, -2.0 * g2
+    r = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2) if dim > 2 else (
+        np.sqrt(g0 * g0 + g1 * g1) if dim > 1 else np.sqrt(g0 * g0))
+    if r > 0.0:
+        return -g0 / r, -g1 / r, -g2 / r
+    return 0.0, 0.0, 0.0
+
+
+@njit(cache=True, inline="always")
+def _step(form, x, n_local, c_offsets, c_j, m, m_prev, g, xbar, step, beta, r, acc):
     dim = x.shape[1]
     fbuf = exactsum.staging(acc)
-    grad = np.zeros(dim)
     for i in range(n_local):
-        for k in range(dim):
-            r[i, k] = x[i, k] - xbar[k]
-        for e in range(pair_offsets[i], pair_offsets[i + 1]):
-            if not active[e]:
-                continue
-            new = m[e] - step * g[e]  # the projected gradient step from the point y = m
+        r0 = x[i, 0] - xbar[0]
+        r1 = x[i, 1] - xbar[1] if dim > 1 else 0.0
+        r2_ = x[i, 2] - xbar[2] if dim > 2 else 0.0
+        for c in range(c_offsets[i], c_offsets[i + 1]):
+            new = m[c] - step * g[c]  # the projected gradient step from the point y = m
             if new < 0.0:
                 new = 0.0
-            y = new + beta * (new - m_prev[e])  # the extrapolated point, projected
+            y = new + beta * (new - m_prev[c])  # the extrapolated point, projected
             if y < 0.0:
                 y = 0.0
-            m_prev[e] = new
-            m[e] = y
+            m_prev[c] = new
+            m[c] = y
             if y > 0.0:
-                _grad(form, x, i, pair_j[e], grad)
-                for k in range(dim):
-                    r[i, k] += y * grad[k]
-        r2 = 0.0
-        for k in range(dim):
-            r2 += r[i, k] * r[i, k]
-        exactsum.add(fbuf, acc, FIT_R2, r2)
+                d0, d1, d2 = _grad(form, x, i, c_j[c])
+                r0 += y * d0
+                r1 += y * d1
+                r2_ += y * d2
+        r[i, 0] = r0
+        rr = r0 * r0
+        if dim > 1:
+            r[i, 1] = r1
+            rr += r1 * r1
+        if dim > 2:
+            r[i, 2] = r2_
+            rr += r2_ * r2_
+        exactsum.add(fbuf, acc, FIT_R2, rr)
     exactsum.flush(fbuf, acc)
 
 
 @njit(cache=True)
-def step_s(x, n_local, po, pj, active, m, m_prev, g, xbar, step, beta, r, acc):
-    _step(SMOOTH, x, n_local, po, pj, active, m, m_prev, g, xbar, step, beta, r, acc)
+def step_s(x, n_local, co, cj, m, m_prev, g, xbar, step, beta, r, acc):
+    _step(SMOOTH, x, n_local, co, cj, m, m_prev, g, xbar, step, beta, r, acc)
 
 
 @njit(cache=True)
-def step_ns(x, n_local, po, pj, active, m, m_prev, g, xbar, step, beta, r, acc):
-    _step(NONSMOOTH, x, n_local, po, pj, active, m, m_prev, g, xbar, step, beta, r, acc)
+def step_ns(x, n_local, co, cj, m, m_prev, g, xbar, step, beta, r, acc):
+    _step(NONSMOOTH, x, n_local, co, cj, m, m_prev, g, xbar, step, beta, r, acc)
 
 
 @njit(cache=True, inline="always")
-def _gradient(form, x, n_local, pair_offsets, pair_j, active, m, m_prev, step, r, g, acc, maxima):
+def _gradient(form, x, n_local, c_offsets, c_j, m, m_prev, step, r, g, acc, maxima):
     dim = x.shape[1]
     fbuf = exactsum.staging(acc)
-    grad = np.zeros(dim)
     max_row = 0.0
     for i in range(n_local):
         turn = 0.0
         row = 0.0
-        for e in range(pair_offsets[i], pair_offsets[i + 1]):
-            if not active[e]:
-                continue
-            j = pair_j[e]
-            _grad(form, x, i, j, grad)
-            ge = 0.0
-            for k in range(dim):
-                ge += grad[k] * (r[i, k] - r[j, k])
-                row += grad[k] * grad[k]
-            g[e] = ge
+        ri0 = r[i, 0]
+        ri1 = r[i, 1] if dim > 1 else 0.0
+        ri2 = r[i, 2] if dim > 2 else 0.0
+        for c in range(c_offsets[i], c_offsets[i + 1]):
+            j = c_j[c]
+            d0, d1, d2 = _grad(form, x, i, j)
+            ge = d0 * (ri0 - r[j, 0])
+            row += d0 * d0
+            if dim > 1:
+                ge += d1 * (ri1 - r[j, 1])
+                row += d1 * d1
+            if dim > 2:
+                ge += d2 * (ri2 - r[j, 2])
+                row += d2 * d2
+            g[c] = ge
             # the restart test's g(y) . (m_next - m_prev), m_next the next step's projected
             # gradient step from y (the same expression as in _step, so the same bits)
-            new = m[e] - step * ge
+            new = m[c] - step * ge
             if new < 0.0:
                 new = 0.0
-            turn += ge * (new - m_prev[e])
+            turn += ge * (new - m_prev[c])
         if row > max_row:
             max_row = row
         exactsum.add(fbuf, acc, FIT_TURN, turn)
@@ -152,13 +181,13 @@ def _gradient(form, x, n_local, pair_offsets, pair_j, active, m, m_prev, step, r
 
 
 @njit(cache=True)
-def gradient_s(x, n_local, po, pj, active, m, m_prev, step, r, g, acc, maxima):
-    _gradient(SMOOTH, x, n_local, po, pj, active, m, m_prev, step, r, g, acc, maxima)
+def gradient_s(x, n_local, co, cj, m, m_prev, step, r, g, acc, maxima):
+    _gradient(SMOOTH, x, n_local, co, cj, m, m_prev, step, r, g, acc, maxima)
 
 
 @njit(cache=True)
-def gradient_ns(x, n_local, po, pj, active, m, m_prev, step, r, g, acc, maxima):
-    _gradient(NONSMOOTH, x, n_local, po, pj, active, m, m_prev, step, r, g, acc, maxima)
+def gradient_ns(x, n_local, co, cj, m, m_prev, step, r, g, acc, maxima):
+    _gradient(NONSMOOTH, x, n_local, co, cj, m, m_prev, step, r, g, acc, maxima)
 
 
 _KERNELS = {"S": (start_s, step_s, gradient_s), "NS": (start_ns, step_ns, gradient_ns)}
@@ -171,14 +200,15 @@ def fit_kernels(form):
           pen, lam_floor, contact_tol, m, active): m (n_entries,) the run's own multipliers
           (``kernels.entry_multiplier`` times lam_scale) on pairs in contact, 0 elsewhere;
           active (n_entries,) bool, the pair is in contact to contact_tol.
-    step(x, n_local, pair_offsets, pair_j, active, m, m_prev, g, xbar, s, beta, r, acc):
-          on active entries, from the point y = m with its gradient g: the projected
-          gradient step m_next = max(0, y - s g), then y <- max(0, m_next + beta (m_next -
-          m_prev)) and m_prev <- m_next (FISTA's extrapolation, projected so that every point
-          whose residual is summed is a feasible m >= 0); r (n_total, b) rows of the local
-          particles at the new y; acc row FIT_R2 (sum |r_i|^2).
-    gradient(x, n_local, pair_offsets, pair_j, active, m, m_prev, s, r, g, acc, maxima):
-          g (n_entries,) at y = m from r with fresh ghost rows; acc row FIT_TURN (sum of
+    step(x, n_local, c_offsets, c_j, m, m_prev, g, xbar, s, beta, r, acc): over the pairs in
+          contact only (``contacts``: c_offsets (n_local+1,) their rows, c_j their partners,
+          m, m_prev and g (n_contacts,) per contact), from the point y = m with its gradient
+          g: the projected gradient step m_next = max(0, y - s g), then y <- max(0, m_next +
+          beta (m_next - m_prev)) and m_prev <- m_next (FISTA's extrapolation, projected so
+          that every point whose residual is summed is a feasible m >= 0); r (n_total, b) rows
+          of the local particles at the new y; acc row FIT_R2 (sum |r_i|^2).
+    gradient(x, n_local, c_offsets, c_j, m, m_prev, s, r, g, acc, maxima):
+          g (n_contacts,) at y = m from r with fresh ghost rows; acc row FIT_TURN (sum of
           g (max(0, m - s g) - m_prev): positive when the next step turns back, the restart
           test of O'Donoghue and Candes); maxima[FIT_ROW] the largest row
           sum_j |grad_i phi_ij|^2 over the local particles.
