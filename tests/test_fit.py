@@ -175,12 +175,23 @@ def test_the_certifier_gives_the_first_fit_less_budget_than_later_ones(monkeypat
         return cert.check(None, {"iteration": iteration, "W": 1.0, "max_overlap": 0.0})
 
     assert certify.FIRST_FIT_STEPS < certify.MIN_FIT_STEPS
-    first = int(certify.FIRST_FIT_STEPS / certify.FIT_SHARE)  # the budget reaches 250 here
-    assert not check(first - 50) and fits == []  # 240 steps of budget: no fit yet
-    assert not check(first) and fits == [certify.FIRST_FIT_STEPS]  # the first fit, 250 steps
-    spent = certify.FIRST_FIT_STEPS
+
+    def budget(now, spent):  # fit steps left: a FIT_SHARE of the iterations, at FIT_STEP_COST
+        return int((certify.FIT_SHARE * now - certify.FIT_STEP_COST * spent) / certify.FIT_STEP_COST)
+
+    def first_check(since, spent, least):  # the first check (every 50) with `least` steps left
+        it = since + 50
+        while budget(it, spent) < least:
+            it += 50
+        return it
+
+    first = first_check(0, 0, certify.FIRST_FIT_STEPS)
+    assert not check(first - 50) and fits == []  # less than 250 steps of budget: no fit yet
+    assert not check(first) and fits == [budget(first, 0)]  # the first fit takes the budget
+    spent = fits[0]
     # later fits wait for MIN_FIT_STEPS of budget, not FIRST_FIT_STEPS
-    later = int((certify.MIN_FIT_STEPS + spent) / certify.FIT_SHARE)
-    assert not check(later - 50) and fits == [certify.FIRST_FIT_STEPS]
-    assert not check(later) and fits == [certify.FIRST_FIT_STEPS, certify.MIN_FIT_STEPS]
-    assert cert.fit_steps == certify.FIRST_FIT_STEPS + certify.MIN_FIT_STEPS
+    later = first_check(first, spent, certify.MIN_FIT_STEPS)
+    assert budget(later - 50, spent) >= certify.FIRST_FIT_STEPS
+    assert not check(later - 50) and len(fits) == 1
+    assert not check(later) and fits[1] == budget(later, spent) >= certify.MIN_FIT_STEPS
+    assert cert.fit_steps == fits[0] + fits[1]
