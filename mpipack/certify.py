@@ -33,21 +33,20 @@ from . import measures
 
 MIN_WINDOW = 1
 # the multiplier fits of the checks cost at most FIT_SHARE of the run's iterations, a fit step
-# counted as FIT_STEP_COST iterations (two passes over the pairs in contact, a ghost refresh
-# and one allreduce cost 0.88 - 1.09 iterations when the count was set, and since the fit's
-# kernels run over the contacts alone 0.34 of an iteration of the loop at 3D N = 2000, 0.24 at
-# 3D N = 8000, 0.30 there on 2 ranks, 0.43 at 2D N = 32000: the fits now take at most 5 - 9%
-# of a run's time; counting a step as 0.35 iteration certified 3D N = 2000 5.5% sooner in
-# iterations, but where the extra fits failed they cost time for nothing: docs/convergence.md,
-# section 3p), and a check
-# fits only when the run's multipliers
-# leave the KKT residual within FIT_GAIN times its tolerance (the fit removed at most 20x of it
-# where it certified: docs/convergence.md, section 3h) and the budget left allows at least
-# FIRST_FIT_STEPS steps for a run's first fit, MIN_FIT_STEPS for every later one (250 certifies
-# short runs, a fifth of 1250 - 2500 iterations, by a fit: section 3n; but once the budget is
-# spent, 250-step fits left 3D N = 1e5 uncertified at 93000 iterations where 500 had certified
-# it: section 3m); a fit takes at most the budget left (one long fit gets further than several
-# short ones, each of which starts again from the run's multipliers: section 3l)
+# counted as FIT_STEP_COST iterations (two passes over the pairs in contact, a ghost refresh and
+# one allreduce cost 0.88 - 1.09 iterations when the count was set, and since the fit's kernels
+# run over the contacts alone 0.34 of an iteration of the loop at 3D N = 2000, 0.24 at 3D N =
+# 8000, 0.30 there on 2 ranks, 0.43 at 2D N = 32000: the fits now take at most 5 - 9% of a run's
+# time; counting a step as 0.35 iteration certified 3D N = 2000 5.5% sooner in iterations, but
+# where the extra fits failed they cost time for nothing: docs/convergence.md, section 3p), and
+# a check fits only when the run's multipliers leave the KKT residual within FIT_GAIN times its
+# tolerance (the fit removed at most 20x of it where it certified: docs/convergence.md, section
+# 3h) and the budget left allows at least FIRST_FIT_STEPS steps for a run's first fit,
+# MIN_FIT_STEPS for every later one (250 certifies short runs, a fifth of 1250 - 2500
+# iterations, by a fit: section 3n; but once the budget is spent, 250-step fits left 3D N = 1e5
+# uncertified at 93000 iterations where 500 had certified it: section 3m); a fit takes at most
+# the budget left (one long fit gets further than several short ones, each of which starts again
+# from the run's multipliers: section 3l)
 FIT_SHARE, FIT_STEP_COST, FIT_GAIN, MIN_FIT_STEPS, FIRST_FIT_STEPS = 0.2, 1.0, 20.0, 500, 250
 
 

@@ -28,8 +28,8 @@ configuration is itself within the certificate's 1e-2 from about iteration 14000
 
 One fit step costs two passes over the pairs in contact (kept as rows of their own for the
 fit), a ghost refresh of r and one fused allreduce: 134 us at 3D N = 2000 (1 rank), against
-~390 us per iteration of the run's loop; every decision is taken from reduced values, so the result is the same
-on every rank and on any number of ranks.
+~390 us per iteration of the run's loop; every decision is taken from reduced values, so the
+result is the same on every rank and on any number of ranks.
 """
 
 import math

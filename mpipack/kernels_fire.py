@@ -204,8 +204,6 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
     return n_active
 
 
-# error_model "numpy": no zero-division checks in the pair loop (every divisor is a diameter
-# or a guarded distance); the results are the same bits
 _DOC = """One pass of the fire-al step for one form and dimension; see the module docstring.
 
     Arguments: (x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda, xbar,
@@ -215,6 +213,8 @@ _DOC = """One pass of the fire-al step for one form and dimension; see the modul
     """
 
 
+# error_model "numpy": no zero-division checks in the pair loop (every divisor is a diameter
+# or a guarded distance); the results are the same bits
 @njit(cache=True, error_model="numpy")
 def fire_s1(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx):
     return _fire_al_step(SMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx)
