@@ -150,7 +150,10 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
     the fullest occupancy, at most all particles, plus the longest history) and sorted by
     partner gid; history partners already among the candidates take their lambda, the others
     (far partners) are inserted. No buffer is reallocated inside the candidate loop: growable
-    buffers there made the build 4x slower (measured: docs/convergence.md, section 3o).
+    buffers there made the build 4x slower (measured: docs/convergence.md, section 3o). The
+    candidates of the 3^b cells around a cell (positions, diameters, gids, indices) are
+    gathered into one contiguous buffer and kept while the next local is in the same cell
+    (the locals are sorted by cell): 10 - 30% faster builds, the same rows (section 3p).
     """
     pair_offsets = np.zeros(n_local + 1, dtype=np.int64)
     if n_local == 0:
@@ -192,44 +195,65 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
     coord = np.empty(b, dtype=np.int64)
     missing = 0
     pos = 0
+    # the candidates of the 3^b cells around one cell, gathered once for all the (spatially
+    # sorted) locals of that cell: positions, diameters, gids and indices in a row each
+    n_cand_cap = row_cap
+    cand_x = np.empty((n_cand_cap, b))
+    cand_d = np.empty(n_cand_cap)
+    cand_g = np.empty(n_cand_cap, dtype=np.int64)
+    cand_j = np.empty(n_cand_cap, dtype=np.int64)
+    n_cand = 0
+    cand_key = np.int64(-1)
     for i in range(n_local):
         cnt = 0
-        t = keys[i]
-        for k in range(b - 1, -1, -1):
-            coord[k] = t % dims[k]
-            t //= dims[k]
-        for m in range(n_nb):
-            nkey = np.int64(0)
-            ok = True
+        if keys[i] != cand_key:
+            cand_key = keys[i]
+            n_cand = 0
+            t = keys[i]
+            for k in range(b - 1, -1, -1):
+                coord[k] = t % dims[k]
+                t //= dims[k]
+            for m in range(n_nb):
+                nkey = np.int64(0)
+                ok = True
+                for k in range(b):
+                    c = coord[k] + offs[m, k]
+                    if c < 0 or c >= dims[k]:
+                        ok = False
+                        break
+                    nkey = nkey * dims[k] + c
+                if not ok:
+                    continue
+                if dense:
+                    s0 = cell_start[nkey]
+                    s1 = cell_start[nkey + 1]
+                else:
+                    s0 = _searchsorted_left(skeys, nkey)
+                    s1 = s0
+                    while s1 < skeys.shape[0] and skeys[s1] == nkey:
+                        s1 += 1
+                for q in range(s0, s1):
+                    j = order[q]
+                    for k in range(b):
+                        cand_x[n_cand, k] = x[j, k]
+                    cand_d[n_cand] = diam[j]
+                    cand_g[n_cand] = gid[j]
+                    cand_j[n_cand] = j
+                    n_cand += 1
+        di = diam[i]
+        for c in range(n_cand):
+            r2 = 0.0
             for k in range(b):
-                c = coord[k] + offs[m, k]
-                if c < 0 or c >= dims[k]:
-                    ok = False
-                    break
-                nkey = nkey * dims[k] + c
-            if not ok:
-                continue
-            if dense:
-                s0 = cell_start[nkey]
-                s1 = cell_start[nkey + 1]
-            else:
-                s0 = _searchsorted_left(skeys, nkey)
-                s1 = s0
-                while s1 < skeys.shape[0] and skeys[s1] == nkey:
-                    s1 += 1
-            for q in range(s0, s1):
-                j = order[q]
+                dx = x[i, k] - cand_x[c, k]
+                r2 += dx * dx
+            rc = 0.5 * (di + cand_d[c]) + skin
+            if r2 < rc * rc:
+                j = cand_j[c]
                 if j == i:
                     continue
-                r2 = 0.0
-                for k in range(b):
-                    dx = x[i, k] - x[j, k]
-                    r2 += dx * dx
-                rc = 0.5 * (diam[i] + diam[j]) + skin
-                if r2 < rc * rc:
-                    row_g[cnt] = gid[j]
-                    row_j[cnt] = j
-                    cnt += 1
+                row_g[cnt] = cand_g[c]
+                row_j[cnt] = j
+                cnt += 1
         _sort_row(row_g, row_j, cnt)
         for q in range(cnt):
             row_l[q] = 0.0
