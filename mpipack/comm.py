@@ -19,6 +19,7 @@ the loop: every verb has a size-1 short cut (the solver does not even call excha
 import numpy as np
 from mpi4py import MPI
 
+from . import neighbors
 from .state import gather_rows
 
 _FUSED_OP = None
@@ -249,7 +250,7 @@ def borders(comm, dest_offsets, dest_idx, fields, hist_gid):
     gid = fields["gid"]
     n_local = gid.shape[0]
     present = np.concatenate([gid, got["gid"]])
-    missing = np.setdiff1d(hist_gid, present)  # sorted, unique
+    missing = neighbors.missing_partners(present, hist_gid)  # sorted, unique
     requests = comm.allgather_object(missing)
     n_far = int(sum(len(r) for r in requests))
     if n_far == 0:

@@ -394,17 +394,49 @@ def history(n_local, gid, pair_offsets, pair_j, pair_lambda):
     return hist_offsets, hist_gid, hist_lambda
 
 
+# a gid span up to this many times the number of gids involved is marked in a dense table
+# (one byte per gid); a wider one is searched in the sorted present gids
+DENSE_SPAN = 64
+
+
 @njit(cache=True)
-def missing_partners(n_total, gid, hist_gid):
-    """Sorted unique history partner gids that are not among gid[:n_total]."""
-    sgid = np.sort(gid[:n_total])
-    out = np.empty(hist_gid.shape[0], dtype=np.int64)
+def missing_partners(present, hist_gid):
+    """Sorted unique gids of ``hist_gid`` that are not in ``present`` (both int64): the
+    history partners a rank still has to request (``np.setdiff1d(hist_gid, present)``).
+
+    When the gids span at most DENSE_SPAN times their number, every present gid is marked in
+    a byte table and each partner looked up in it (O(n); measured 1.8 ms of np.setdiff1d's
+    hash-based uniques per rebuild at 3D N = 20000 on 2 ranks); else binary search in the
+    sorted present gids. The few missing ones are then sorted.
+    """
+    n_h = hist_gid.shape[0]
+    if n_h == 0:
+        return np.empty(0, dtype=np.int64)
+    lo = hist_gid[0]
+    hi = hist_gid[0]
+    for v in hist_gid:
+        lo = min(lo, v)
+        hi = max(hi, v)
+    for v in present:
+        lo = min(lo, v)
+        hi = max(hi, v)
+    out = np.empty(n_h, dtype=np.int64)
     n = 0
-    for e in range(hist_gid.shape[0]):
-        g = hist_gid[e]
-        s = _searchsorted_left(sgid, g)
-        if s >= n_total or sgid[s] != g:
-            out[n] = g
+    if hi - lo + 1 <= DENSE_SPAN * (n_h + present.shape[0]):
+        mark = np.zeros(hi - lo + 1, dtype=np.uint8)  # 1: present, 2: already reported
+        for v in present:
+            mark[v - lo] = 1
+        for v in hist_gid:
+            if mark[v - lo] == 0:
+                mark[v - lo] = 2
+                out[n] = v
+                n += 1
+        return np.sort(out[:n])
+    spresent = np.sort(present)
+    for v in hist_gid:
+        s = _searchsorted_left(spresent, v)
+        if s >= spresent.shape[0] or spresent[s] != v:
+            out[n] = v
             n += 1
     return np.unique(out[:n])
 

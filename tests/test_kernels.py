@@ -455,3 +455,21 @@ def test_spatial_order_is_a_stable_sort_by_cell(dim):
         keys, _, _ = neighbors.cell_keys(x, 300, 1.3)
         assert np.array_equal(neighbors.spatial_order(x, 300, 1.3), np.argsort(keys, kind="mergesort"))
     assert neighbors.spatial_order(np.zeros((0, dim)), 0, 1.3).shape == (0,)
+
+
+def test_missing_partners_is_the_sorted_set_difference():
+    """The history partners a rank must request: np.setdiff1d's result (sorted, unique), by the
+    byte table when the gids span a narrow range and by binary search when they are sparse;
+    repeated and absent partners, empty inputs."""
+    rng = np.random.default_rng(7)
+    for span, n_present, n_hist in ((500, 300, 900), (10 ** 12, 300, 900), (50, 0, 40),
+                                    (50, 40, 0), (2 ** 40, 1, 3)):
+        present = rng.choice(span, size=n_present, replace=False).astype(np.int64)
+        hist = np.concatenate([rng.choice(present, size=n_hist // 2) if n_present else
+                               np.zeros(0, np.int64),
+                               rng.integers(0, span, size=n_hist - n_hist // 2)]).astype(np.int64)
+        got = neighbors.missing_partners(present, hist)
+        want = np.setdiff1d(hist, present)
+        assert got.dtype == np.int64 and np.array_equal(got, want), (span, n_present, n_hist)
+    # the dense path is taken for a narrow span, the search for a wide one (both above)
+    assert 500 <= neighbors.DENSE_SPAN * 1200 and 10 ** 12 > neighbors.DENSE_SPAN * 1200
