@@ -140,6 +140,16 @@ def value(acc, q):
     return ((float(a[0]) * ULP0 + float(a[1]) * ULP1) + float(a[2]) * ULP2) + float(a[3]) * ULP3
 
 
+@njit(cache=True)
+def values_all(acc):
+    """float64 values of every quantity of a (possibly reduced) accumulator, shape
+    (n_quantities,): ``value(acc, q)`` for each q in one call (NaN where it overflowed)."""
+    out = np.empty(acc.shape[0])
+    for q in range(acc.shape[0]):
+        out[q] = value(acc, q)
+    return out
+
+
 def exact_sum(values):
     """Order-independent sum of a float64 array (serial helper, used in tests and metrics)."""
     acc = new_accumulator(1)

@@ -43,6 +43,7 @@ class Reduction:
         self.maxima_buf = None
         self.global_sums = None
         self.global_maxima = None
+        self._values = None
 
     # ---- registration -----------------------------------------------------------------
     def add_exact(self, block, fields):
@@ -122,6 +123,7 @@ class Reduction:
             else:
                 self.maxima(name)[:] = fill()
         self.global_sums, self.global_maxima = comm.reduce_fused(self.sums, self.maxima_buf)
+        self._values = None  # the exact fields' float values, made at the first read
         return self
 
     # ---- global side ----------------------------------------------------------------------
@@ -129,19 +131,26 @@ class Reduction:
         first, rows = self._exact[name]
         return self.global_sums[first * _ROW:(first + rows) * _ROW].reshape(rows, _ROW)
 
+    def _all_values(self):
+        """float64 values of every exact row (one compiled call per reduction)."""
+        if self._values is None:
+            n = self._n_exact_rows
+            self._values = exactsum.values_all(self.global_sums[:n * _ROW].reshape(n, _ROW))
+        return self._values
+
     def value(self, name, row=0):
         """float64 value of an exact field (row ``row``); NaN if any rank overflowed it."""
-        return exactsum.value(self._global_acc(name), row)
+        first, _ = self._exact[name]
+        return float(self._all_values()[first + row])
 
     def values(self, name):
-        g = self._global_acc(name)
-        return np.array([exactsum.value(g, k) for k in range(g.shape[0])])
+        first, rows = self._exact[name]
+        return self._all_values()[first:first + rows].copy()
 
     def overflowed(self):
-        """True when some exact sum met a NaN, Inf or a value beyond exactsum.RANGE."""
-        n = self._n_exact_rows
-        flags = self.global_sums[:n * _ROW].reshape(n, _ROW)[:, exactsum.NBINS]
-        return bool(np.any(flags != 0))
+        """True when some exact sum met a NaN, Inf or a value beyond exactsum.RANGE (its value
+        is then NaN: a finite value is never NaN)."""
+        return bool(np.isnan(self._all_values()).any())
 
     def count(self, name):
         return int(self.global_sums[self._n_exact_rows * _ROW + self._counts[name]])
