@@ -127,10 +127,6 @@ class Reduction:
         return self
 
     # ---- global side ----------------------------------------------------------------------
-    def _global_acc(self, name):
-        first, rows = self._exact[name]
-        return self.global_sums[first * _ROW:(first + rows) * _ROW].reshape(rows, _ROW)
-
     def _all_values(self):
         """float64 values of every exact row (one compiled call per reduction)."""
         if self._values is None:
@@ -140,7 +136,9 @@ class Reduction:
 
     def value(self, name, row=0):
         """float64 value of an exact field (row ``row``); NaN if any rank overflowed it."""
-        first, _ = self._exact[name]
+        first, rows = self._exact[name]
+        if not 0 <= row < rows:
+            raise IndexError(f"exact field {name!r} has {rows} rows, not row {row}")
         return float(self._all_values()[first + row])
 
     def values(self, name):
