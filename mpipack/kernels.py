@@ -57,6 +57,30 @@ def coefficients(method, alpha, beta, gamma, c):
 
 
 @njit(cache=True, inline="always")
+def coordinates(dim, x, i):
+    """Row i of x as three scalars (0 beyond dim): a sphere's position held in registers."""
+    return x[i, 0], x[i, 1] if dim > 1 else 0.0, x[i, 2] if dim > 2 else 0.0
+
+
+@njit(cache=True, inline="always")
+def separation(dim, x, xi0, xi1, xi2, j):
+    """X_i - X_j as three scalars (0 beyond dim) and |X_i - X_j|^2, summed in coordinate order
+    (the same bits for the pair in either row, up to the sign of the components); X_i is given
+    as scalars, X_j is row j of x. Shared by every kernel that walks the pair rows."""
+    d0 = xi0 - x[j, 0]
+    d1 = 0.0
+    d2 = 0.0
+    r2 = d0 * d0
+    if dim > 1:
+        d1 = xi1 - x[j, 1]
+        r2 += d1 * d1
+    if dim > 2:
+        d2 = xi2 - x[j, 2]
+        r2 += d2 * d2
+    return d0, d1, d2, r2
+
+
+@njit(cache=True, inline="always")
 def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j,
                           pair_lambda, xbar, a1, a2, a3, a4, beta, update_lambda, acc, maxima):
     # form and dim are compile-time constants of each wrapper below: LLVM removes the dead
@@ -72,25 +96,14 @@ def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offse
     min_ratio2 = 1.0
     n_active = 0
     for i in range(n_local):
-        xi0 = x[i, 0]
-        xi1 = x[i, 1] if dim > 1 else 0.0
-        xi2 = x[i, 2] if dim > 2 else 0.0
+        xi0, xi1, xi2 = coordinates(dim, x, i)
         f0 = 0.0
         f1 = 0.0
         f2 = 0.0
         di = diam[i]
         for e in range(pair_offsets[i], pair_offsets[i + 1]):
             j = pair_j[e]
-            d0 = xi0 - x[j, 0]
-            d1 = 0.0
-            d2 = 0.0
-            r2 = d0 * d0
-            if dim > 1:
-                d1 = xi1 - x[j, 1]
-                r2 += d1 * d1
-            if dim > 2:
-                d2 = xi2 - x[j, 2]
-                r2 += d2 * d2
+            d0, d1, d2, r2 = separation(dim, x, xi0, xi1, xi2, j)
             dij = 0.5 * (di + diam[j])
             r = 0.0
             if form == SMOOTH:

@@ -39,7 +39,7 @@ import numpy as np
 from numba import njit
 
 from . import exactsum
-from .kernels import NONSMOOTH, SMOOTH
+from .kernels import NONSMOOTH, SMOOTH, coordinates, separation
 
 # exact rows after the b rows of sum X^{n+1}
 ACC_DX2, ACC_XX2, ACC_POWER, ACC_FORCE2 = 0, 1, 2, 3
@@ -47,6 +47,16 @@ N_ACC = 4
 # maxima
 MAX_STEP2, MAX_OVERLAP, MAX_GAIN, MAX_ROW = 0, 1, 2, 3
 N_MAX = 4
+
+
+@njit(cache=True, inline="always")
+def _coordinate(a1, a2, a3, xi, xp, xb, f):
+    """One coordinate of a sphere's update: G = -(a3 (X_i - Xbar) + F) and the displacement
+    D = (a1 - 1) X^n + a2 X^{n-1} + G, returned as (D, D^2, (X^n)^2, G (X^n - X^{n-1}), G^2),
+    the terms of the reduced sums |D|^2, |X^n|^2, the power G.V and |G|^2."""
+    g = -(a3 * (xi - xb) + f)
+    d = (a1 - 1.0) * xi + a2 * xp + g
+    return d, d * d, xi * xi, g * (xi - xp), g * g
 
 
 @njit(cache=True, inline="always")
@@ -66,9 +76,7 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
     max_row = 0.0
     n_active = 0
     for i in range(n_local):
-        xi0 = x[i, 0]
-        xi1 = x[i, 1] if dim > 1 else 0.0
-        xi2 = x[i, 2] if dim > 2 else 0.0
+        xi0, xi1, xi2 = coordinates(dim, x, i)
         f0 = 0.0
         f1 = 0.0
         f2 = 0.0
@@ -77,16 +85,7 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
         row = 0.0
         for e in range(pair_offsets[i], pair_offsets[i + 1]):
             j = pair_j[e]
-            d0 = xi0 - x[j, 0]
-            d1 = 0.0
-            d2 = 0.0
-            r2 = d0 * d0
-            if dim > 1:
-                d1 = xi1 - x[j, 1]
-                r2 += d1 * d1
-            if dim > 2:
-                d2 = xi2 - x[j, 2]
-                r2 += d2 * d2
+            d0, d1, d2, r2 = separation(dim, x, xi0, xi1, xi2, j)
             dij = 0.5 * (di + diam[j])
             r = 0.0
             if form == SMOOTH:
@@ -148,31 +147,21 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
         if row > max_row:
             max_row = row
         # G = -(a3 (X_i - Xbar) + F), D = (a1 - 1) X^n + a2 X^{n-1} + G, per coordinate
-        xp0 = x_prev[i, 0]
-        g0 = -(a3 * (xi0 - xb0) + f0)
-        dd0 = (a1 - 1.0) * xi0 + a2 * xp0 + g0
-        dx2 = dd0 * dd0
-        xx2 = xi0 * xi0
-        power = g0 * (xi0 - xp0)
-        force2 = g0 * g0
+        dd0, dx2, xx2, power, force2 = _coordinate(a1, a2, a3, xi0, x_prev[i, 0], xb0, f0)
         dd1 = 0.0
         dd2 = 0.0
         if dim > 1:
-            xp1 = x_prev[i, 1]
-            g1 = -(a3 * (xi1 - xb1) + f1)
-            dd1 = (a1 - 1.0) * xi1 + a2 * xp1 + g1
-            dx2 += dd1 * dd1
-            xx2 += xi1 * xi1
-            power += g1 * (xi1 - xp1)
-            force2 += g1 * g1
+            dd1, s_dx, s_xx, s_pw, s_f = _coordinate(a1, a2, a3, xi1, x_prev[i, 1], xb1, f1)
+            dx2 += s_dx
+            xx2 += s_xx
+            power += s_pw
+            force2 += s_f
         if dim > 2:
-            xp2 = x_prev[i, 2]
-            g2_ = -(a3 * (xi2 - xb2) + f2)
-            dd2 = (a1 - 1.0) * xi2 + a2 * xp2 + g2_
-            dx2 += dd2 * dd2
-            xx2 += xi2 * xi2
-            power += g2_ * (xi2 - xp2)
-            force2 += g2_ * g2_
+            dd2, s_dx, s_xx, s_pw, s_f = _coordinate(a1, a2, a3, xi2, x_prev[i, 2], xb2, f2)
+            dx2 += s_dx
+            xx2 += s_xx
+            power += s_pw
+            force2 += s_f
         if vmax > 0.0 and dx2 > vmax * vmax:
             scale = vmax / np.sqrt(dx2)
             dd0 *= scale

@@ -23,7 +23,7 @@ import numpy as np
 from numba import njit
 
 from . import exactsum
-from .kernels import NONSMOOTH, SMOOTH, entry_multiplier
+from .kernels import NONSMOOTH, SMOOTH, coordinates, entry_multiplier, separation
 
 # exact rows: sum_i |r_i|^2 and the restart test's sum over entries of g (m_next - m_prev)
 # (every pair counted twice, in both of its rows)
@@ -88,13 +88,11 @@ def _grad(form, x, i, j):
     """grad_{X_i} phi_ij as three scalars: -2 (X_i - X_j) (S) or -(X_i - X_j) / |X_i - X_j|
     (NS); the coordinates beyond x's dimension are 0."""
     dim = x.shape[1]
-    g0 = x[i, 0] - x[j, 0]
-    g1 = x[i, 1] - x[j, 1] if dim > 1 else 0.0
-    g2 = x[i, 2] - x[j, 2] if dim > 2 else 0.0
+    xi0, xi1, xi2 = coordinates(dim, x, i)
+    g0, g1, g2, r2 = separation(dim, x, xi0, xi1, xi2, j)
     if form == SMOOTH:
         return -2.0 * g0, -2.0 * g1, -2.0 * g2
-    r = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2) if dim > 2 else (
-        np.sqrt(g0 * g0 + g1 * g1) if dim > 1 else np.sqrt(g0 * g0))
+    r = np.sqrt(r2)
     if r > 0.0:
         return -g0 / r, -g1 / r, -g2 / r
     return 0.0, 0.0, 0.0
@@ -152,9 +150,7 @@ def _gradient(form, x, n_local, c_offsets, c_j, m, m_prev, step, r, g, acc, maxi
     for i in range(n_local):
         turn = 0.0
         row = 0.0
-        ri0 = r[i, 0]
-        ri1 = r[i, 1] if dim > 1 else 0.0
-        ri2 = r[i, 2] if dim > 2 else 0.0
+        ri0, ri1, ri2 = coordinates(dim, r, i)
         for c in range(c_offsets[i], c_offsets[i + 1]):
             j = c_j[c]
             d0, d1, d2 = _grad(form, x, i, j)

@@ -197,11 +197,10 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
     pos = 0
     # the candidates of the 3^b cells around one cell, gathered once for all the (spatially
     # sorted) locals of that cell: positions, diameters, gids and indices in a row each
-    n_cand_cap = row_cap
-    cand_x = np.empty((n_cand_cap, b))
-    cand_d = np.empty(n_cand_cap)
-    cand_g = np.empty(n_cand_cap, dtype=np.int64)
-    cand_j = np.empty(n_cand_cap, dtype=np.int64)
+    cand_x = np.empty((row_cap, b))
+    cand_d = np.empty(row_cap)
+    cand_g = np.empty(row_cap, dtype=np.int64)
+    cand_j = np.empty(row_cap, dtype=np.int64)
     n_cand = 0
     cand_key = np.int64(-1)
     for i in range(n_local):
