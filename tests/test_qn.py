@@ -1,0 +1,153 @@
+"""The L-BFGS inner solver's scalar side (``qn``, the two-loop recursion on a Gram matrix of
+exact sums) and its per-sphere kernels (``kernels_qn``), against a plain L-BFGS on whole
+vectors."""
+
+import math
+
+import numpy as np
+import pytest
+
+from mpipack import exactsum, kernels_qn, qn
+
+
+def quadratic(n, dim, seed):
+    rng = np.random.default_rng(seed)
+    a = rng.standard_normal((n * dim, n * dim))
+    h = a @ a.T / (n * dim) + np.diag(rng.uniform(0.01, 3.0, n * dim))
+    x_star = rng.standard_normal(n * dim)
+    return h, x_star
+
+
+def lbfgs_step(lb, x, g, mem):
+    """One iteration through the kernels: the gradient g (as the fire-al gradient pass gives
+    it, x_new = x - g), the dots, the scalar direction, the per-sphere update. Returns the
+    next x and whether the step was accepted."""
+    n, dim = x.shape
+    k = qn.slots(lb.m)
+    acc = exactsum.new_accumulator(k + 1 + dim + 1)
+    head = lb.s["head"] if lb.s["stepped"] else -1
+    x_next = x - g  # what the gradient pass leaves in x_new
+    clipped = kernels_qn.dots(x, x_next, n, mem, head, 1e9, acc, np.zeros(1))
+    coef, y_slot, s_slot, ok = lb.direction(exactsum.values_all(acc)[:k + 1], clipped > 0)
+    if coef is None:
+        kernels_qn.backtrack(x, x_next, n, mem, s_slot)
+    else:
+        kernels_qn.direction(x, x_next, n, mem, coef, y_slot, s_slot, 1e9)
+    return x_next, ok
+
+
+@pytest.mark.parametrize("m,dim,seed", [(5, 2, 0), (3, 3, 1), (1, 1, 2)])
+def test_vector_free_two_loop_is_lbfgs(monkeypatch, m, dim, seed):
+    """With every step accepted, the iterates are those of textbook L-BFGS (Nocedal and Wright,
+    Algorithm 7.4, H0 = s.y / y.y) to rounding."""
+    monkeypatch.setattr(qn, "ARMIJO", -math.inf)  # accept every step, as the reference does
+    n = 40
+    h, x_star = quadratic(n, dim, seed)
+    grad = lambda v: h @ (v - x_star)
+    lb = qn.LBFGS(m, h0=0.1)
+    mem = np.zeros((n, qn.slots(m), dim))
+    x = np.zeros((n, dim))
+    xr, s_list, y_list, g_old, s_last, h0 = np.zeros(n * dim), [], [], None, None, 0.1
+    worst = 0.0
+    for it in range(40):
+        x, ok = lbfgs_step(lb, x, grad(x.ravel()).reshape(n, dim), mem)
+        assert ok or it == 0
+        g = grad(xr)
+        if g_old is not None:
+            y = g - g_old
+            s_list.append(s_last)
+            y_list.append(y)
+            h0 = (s_last @ y) / (y @ y)
+            if len(s_list) > m:
+                s_list.pop(0)
+                y_list.pop(0)
+        q, alphas = g.copy(), []
+        for s_, y_ in zip(reversed(s_list), reversed(y_list)):
+            a = (s_ @ q) / (y_ @ s_)
+            q -= a * y_
+            alphas.append(a)
+        q *= h0
+        for (s_, y_), a in zip(zip(s_list, y_list), reversed(alphas)):
+            q += s_ * (a - (y_ @ q) / (y_ @ s_))
+        s_last, g_old = -q, g
+        xr = xr + s_last
+        worst = max(worst, float(np.abs(x.ravel() - xr).max()) / (1.0 + float(np.abs(xr).max())))
+        if np.linalg.norm(g) < 1e-9:
+            break
+    assert worst < 1e-9, worst
+    assert np.linalg.norm(grad(x.ravel())) < 1e-6 * np.linalg.norm(grad(np.zeros(n * dim)))
+
+
+def test_a_step_that_raises_the_function_is_halved():
+    """A gradient step far too long for the curvature overshoots; it is undone by halves (the
+    memory kept) until L falls, and then the iteration converges."""
+    n, dim = 10, 2
+    h, x_star = quadratic(n, dim, 3)
+    f = lambda v: 0.5 * (v - x_star) @ h @ (v - x_star)
+    grad = lambda v: h @ (v - x_star)
+    lam_max = float(np.linalg.eigvalsh(h).max())
+    lb = qn.LBFGS(5, h0=8.0 / lam_max)  # a gradient step 4 times the stable one
+    mem = np.zeros((n, qn.slots(5), dim))
+    x = np.zeros((n, dim))
+    x1, ok = lbfgs_step(lb, x, grad(x.ravel()).reshape(n, dim), mem)
+    assert f(x1.ravel()) > f(x.ravel())  # the first step overshot
+    x2, ok = lbfgs_step(lb, x1, grad(x1.ravel()).reshape(n, dim), mem)
+    assert not ok and lb.s["rejected"] == 1 and lb.s["backtracks"] == 1
+    np.testing.assert_allclose(x2, 0.5 * (x + x1), rtol=0, atol=1e-14)  # half way, from x
+    values = [f(x2.ravel())]
+    x = x2
+    f0 = f(np.zeros(n * dim))
+    for _ in range(60):
+        x, ok = lbfgs_step(lb, x, grad(x.ravel()).reshape(n, dim), mem)
+        values.append(f(x.ravel()))
+        if values[-1] < 1e-12 * f0:  # before rounding takes over
+            break
+    assert values[-1] < 1e-12 * f0
+    assert lb.s["resets"] == 0  # backtracking sufficed: the memory was never dropped
+
+
+def test_shortened_steps_drop_the_memory():
+    n, dim = 8, 3
+    h, x_star = quadratic(n, dim, 4)
+    grad = lambda v: h @ (v - x_star)
+    lb = qn.LBFGS(3, h0=0.2)
+    k = qn.slots(3)
+    mem = np.zeros((n, k, dim))
+    x = np.zeros((n, dim))
+    cap = 1e-3  # every sphere's first step is longer
+    g = grad(x.ravel()).reshape(n, dim)
+    acc = exactsum.new_accumulator(k + 1 + dim + 1)
+    x1 = x - g
+    kernels_qn.dots(x, x1, n, mem, -1, cap, acc, np.zeros(1))
+    coef, y_slot, s_slot, _ = lb.direction(exactsum.values_all(acc)[:k + 1])
+    kernels_qn.direction(x, x1, n, mem, coef, y_slot, s_slot, cap)
+    np.testing.assert_allclose(np.linalg.norm(x1 - x, axis=1), cap, rtol=1e-12)
+    g1 = grad(x1.ravel()).reshape(n, dim)
+    acc = exactsum.new_accumulator(k + 1 + dim + 1)
+    maxima = np.zeros(1)
+    clipped = kernels_qn.dots(x1, x1 - g1, n, mem, lb.s["head"], cap, acc, maxima)
+    assert clipped == n
+    assert maxima[0] == pytest.approx(cap * cap, rel=1e-12)
+    assert exactsum.values_all(acc)[k + 1 + dim] == pytest.approx(n * cap * cap, rel=1e-12)
+    resets = lb.s["resets"]
+    lb.direction(exactsum.values_all(acc)[:k + 1], clipped > 0)
+    assert lb.s["resets"] == resets + 1 and lb.s["k"] == 0
+
+
+def test_save_restore_continues_the_same():
+    n, dim = 12, 2
+    h, x_star = quadratic(n, dim, 5)
+    grad = lambda v: h @ (v - x_star)
+    lb = qn.LBFGS(4, h0=0.1)
+    mem = np.zeros((n, qn.slots(4), dim))
+    x = np.zeros((n, dim))
+    for _ in range(7):
+        x, _ = lbfgs_step(lb, x, grad(x.ravel()).reshape(n, dim), mem)
+    import json
+    twin = qn.LBFGS(4)
+    twin.restore(json.loads(json.dumps(lb.save())))
+    mem2, xa, xb = mem.copy(), x.copy(), x.copy()
+    for _ in range(5):
+        xa, _ = lbfgs_step(lb, xa, grad(xa.ravel()).reshape(n, dim), mem)
+        xb, _ = lbfgs_step(twin, xb, grad(xb.ravel()).reshape(n, dim), mem2)
+    assert np.array_equal(xa, xb)
