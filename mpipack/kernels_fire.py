@@ -62,7 +62,7 @@ def _coordinate(a1, a2, a3, xi, xp, xb, f):
 @njit(cache=True, inline="always")
 def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda,
                   xbar, a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual, vmax, update_lambda,
-                  acc, maxima):
+                  acc, maxima, all_sums):
     # form and dim are compile-time constants of each wrapper below: LLVM removes the dead
     # branches and keeps the coordinates in scalars (with small arrays indexed by a runtime
     # range(dim) loop the pass took 8 - 10% longer, 3D N = 2000 and 2D N = 8000 states)
@@ -170,19 +170,22 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
             dx2 = vmax * vmax
         xn0 = xi0 + dd0
         x_new[i, 0] = xn0
-        exactsum.add(fbuf, acc, 0, xn0)
         if dim > 1:
             xn1 = xi1 + dd1
             x_new[i, 1] = xn1
-            exactsum.add(fbuf, acc, 1, xn1)
         if dim > 2:
             xn2 = xi2 + dd2
             x_new[i, 2] = xn2
-            exactsum.add(fbuf, acc, 2, xn2)
-        exactsum.add(fbuf, acc, dim + ACC_DX2, dx2)
         exactsum.add(fbuf, acc, dim + ACC_XX2, xx2)
-        exactsum.add(fbuf, acc, dim + ACC_POWER, power)
-        exactsum.add(fbuf, acc, dim + ACC_FORCE2, force2)
+        if all_sums:  # an L-BFGS gradient pass needs only |X^n|^2 of these (``kernels_qn``)
+            exactsum.add(fbuf, acc, 0, xn0)
+            if dim > 1:
+                exactsum.add(fbuf, acc, 1, xn1)
+            if dim > 2:
+                exactsum.add(fbuf, acc, 2, xn2)
+            exactsum.add(fbuf, acc, dim + ACC_DX2, dx2)
+            exactsum.add(fbuf, acc, dim + ACC_POWER, power)
+            exactsum.add(fbuf, acc, dim + ACC_FORCE2, force2)
         if dx2 > max_step2 or dx2 != dx2:
             max_step2 = dx2
     exactsum.flush(fbuf, acc)
@@ -196,7 +199,8 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
 _DOC = """One pass of the fire-al step for one form and dimension; see the module docstring.
 
     Arguments: (x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda, xbar,
-    a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual, vmax, update_lambda, acc, maxima).
+    a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual, vmax, update_lambda, acc, maxima,
+    all_sums=True); all_sums False: of the exact sums only |X^n|^2 (an L-BFGS gradient pass).
     Shapes as ``kernels.multipliers_and_step``; acc int64 (b+N_ACC, exactsum.NBINS+1), added to;
     maxima float64 (N_MAX,), overwritten. Returns the number of row entries with lambda > 0.
     """
@@ -205,33 +209,33 @@ _DOC = """One pass of the fire-al step for one form and dimension; see the modul
 # error_model "numpy": no zero-division checks in the pair loop (every divisor is a diameter
 # or a guarded distance); the results are the same bits
 @njit(cache=True, error_model="numpy")
-def fire_s1(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx):
-    return _fire_al_step(SMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx)
+def fire_s1(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(SMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_s2(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx):
-    return _fire_al_step(SMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx)
+def fire_s2(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(SMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_s3(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx):
-    return _fire_al_step(SMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx)
+def fire_s3(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(SMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns1(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx):
-    return _fire_al_step(NONSMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx)
+def fire_ns1(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(NONSMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns2(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx):
-    return _fire_al_step(NONSMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx)
+def fire_ns2(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(NONSMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns3(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx):
-    return _fire_al_step(NONSMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx)
+def fire_ns3(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(NONSMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 _STEPS = {("S", 1): fire_s1, ("S", 2): fire_s2, ("S", 3): fire_s3,

@@ -127,7 +127,7 @@ def export_state(s):
     r, P, N = s.comm.rank, s.comm.size, s.n
     return BlockState(n_global=N, dim=s.dim, gid_lo=N * r // P, x=part["x"],
                       x_prev=part["x_prev"], diam=part["diam"], hist_count=np.diff(hist[0]),
-                      hist_gid=hist[1], hist_lambda=hist[2], x_lin=part.get("x_lin"),
+                      hist_gid=hist[1], hist_lambda=hist[2], x_lin=part.get("x_lin"), qn=part.get("qn"),
                       iteration=st.iteration, lambda_fresh=st.lambda_fresh,
                       counters=dict(s.counters))
 

@@ -105,6 +105,8 @@ class Checkpoints:
                  "hist_count": b.hist_count, "hist_gid": b.hist_gid, "hist_lambda": b.hist_lambda}
         if b.x_lin is not None:
             block["x_lin"] = b.x_lin
+        if b.qn is not None:
+            block["qn"] = b.qn
         scalars = {"iteration": b.iteration, "lambda_fresh": b.lambda_fresh,
                    "counters": b.counters, "extra": {**b.extra, **solver.run_state()}}
         seconds = write_checkpoint(self.comm, self.path, self.scene.n, self.scene.dim, block,
@@ -134,7 +136,7 @@ def read_state(comm, path):
         n_global=int(attrs["n"]), dim=int(attrs["dim"]), gid_lo=int(block["gid_lo"]),
         x=block["x"], x_prev=block["x_prev"], diam=block["diam"],
         hist_count=block["hist_count"], hist_gid=block["hist_gid"],
-        hist_lambda=block["hist_lambda"], x_lin=block.get("x_lin"),
+        hist_lambda=block["hist_lambda"], x_lin=block.get("x_lin"), qn=block.get("qn"),
         iteration=int(scalars["iteration"]), lambda_fresh=bool(scalars["lambda_fresh"]),
         counters=dict(scalars.get("counters", {})), extra=dict(scalars.get("extra", {})))
     return state, scene, attrs

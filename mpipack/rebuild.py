@@ -84,6 +84,7 @@ def rebuild(s, rebalance=False, hist=None):
                            f"on rank {comm.rank} after the ghost exchange")
     st.x_build = st.x[: st.n_local].copy()
     s._disp_bound = 0.0
+    s._qn_cap_pending = 0.0
     s.counters["rebuilds"] += 1
     t.lap(ROWS)
 

@@ -61,6 +61,17 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
    leapfrog bound dt^2 lambda_max < 4 with Gershgorin's k_rel >= lambda_max (a margin of 2 on dt,
    as before, cost 3 - 8 times more iterations at N = 8000: docs/convergence.md, section 3d).
 
+3. L-BFGS at the cap (QN_AT_CAP): from the multiplier step at which c_b reaches CB_MAX, the inner
+   solves are L-BFGS's (``qn``: memory m pairs, the two-loop recursion on the Gram matrix of
+   exact sums, one reduction per iteration; ``kernels_qn``) instead of FIRE's. In the stiff
+   phase FIRE's step is bounded by the stiffest contact (c_b lambda |grad phi|^2) while the
+   packing creeps along soft modes only the trap holds; a quasi-Newton direction learns their
+   curvature from its last steps (docs/convergence.md, sections 3k and 3q). A multiplier step
+   then resets the memory (L_rho changed); it is forced after QN_MAX_INNER iterations while the
+   max overlap is above the stop's tolerance (the inner solve has converged as far as it will;
+   only the multipliers bring the overlap under it), after MAX_INNER between the hold and the
+   tolerance.
+
 Fixed points: at a KKT point the clip gives the force multiplier lambda, grad L_rho = grad L =
 0, both dual steps leave lambda unchanged and every step is zero: the fixed points are those of
 the paper (Proposition 2.4). The certificate's multipliers are the force multipliers
@@ -70,6 +81,8 @@ step behind, so that between two steps a converged inner solve could not be cert
 """
 
 import math
+
+from . import qn
 
 # explosion
 THETA, KAPPA, Q_EXPLODE, OV_START, OV_END = 0.3, 8.0, 100.0, 0.5, 0.1
@@ -109,6 +122,16 @@ PEN_GROW, CB_MAX = 0.5, 1024.0
 # anneals a crystal there
 C_B = {1: 4.0, 2: 4.0, 3: 16.0}
 CB_GROW = {1: 2.0, 2: 2.0, 3: 8.0}
+# once c_b is at CB_MAX, the inner solves are L-BFGS's instead of FIRE's (``qn``): in the stiff
+# phase FIRE's step is bounded by the stiffest contact and the packing creeps along its soft
+# modes (the trap's); a quasi-Newton direction learns their curvature from its last steps
+# (docs/convergence.md, sections 3k and 3q)
+QN_AT_CAP = True
+# ... whose multiplier step is forced after QN_MAX_INNER iterations while the max overlap is
+# above the stop's tolerance (the inner solve converges, but only a multiplier step brings the
+# overlap under the tolerance, without which nothing can be certified), after MAX_INNER while
+# it is between the hold and the tolerance
+QN_MAX_INNER = 500
 # FIRE's dt_max = DT_LEAPFROG / sqrt(k_rel): the leapfrog's stability bound dt^2 lambda_max < 4
 # with lambda_max bounded by the Gershgorin row k_rel
 DT_LEAPFROG = 2.0
@@ -137,6 +160,7 @@ class FireAL:
         # no forced multiplier step while the max overlap (relative to d_kl) is below this;
         # overlap_tol is the scene's stop.overlap
         self.hold_overlap = HOLD_OVERLAP * overlap_tol
+        self.overlap_tol = overlap_tol
         self.d, self.dim, self.w_eq = d, dim, law["W"]
         self.cb_start, self.cb_grow = C_B[dim], CB_GROW[dim]
         # phi has the units of d^p (S: p = 2, NS: p = 1) and lambda those of W / d^p: the
@@ -163,11 +187,17 @@ class FireAL:
             "mix": MIX0, "n_positive": 0, "speed_ratio": 0.0, "b": (DT0_FRAC * dt_max) ** 2,
             "eta": ETA0, "since_dual": 0, "dual_now": False, "inner_residual": math.inf,
             "restarts": 0, "dual_steps": 0, "cb": self.cb_start, "ov_dual": math.inf,
+            "qn": False, "qn_from": 0,
         }
+        self.lbfgs = qn.LBFGS(qn.MEMORY[dim])
 
     @property
     def phase(self):
         return self.s["phase"]
+
+    def quasi_newton_pass(self):
+        """True when the next pass is an L-BFGS step (not a multiplier step, not FIRE's)."""
+        return self.s["qn"] and not self.s["dual_now"]
 
     # ---- after an iteration ------------------------------------------------------------------
     def observe(self, fig):
@@ -187,16 +217,53 @@ class FireAL:
                 s["switch_iteration"] = fig["iteration"]
                 s["pending"] = ["reset_lambda", "restart"]
             return
+        was_dual = s["dual_now"]
+        grad_w = math.sqrt(2.0 * fig["W"])
+        s["since_dual"] += 1
+        s["dual_now"] = False
+        if s["qn"]:
+            # an L-BFGS gradient pass has a3 = 1: force2 is |grad L_rho|^2 (a multiplier
+            # step's pass moves nothing and says nothing about the inner solve)
+            if not was_dual:
+                grad = math.sqrt(fig["force2"])
+                s["inner_residual"] = grad / grad_w if grad_w > 0 else math.inf
+        else:
+            self._fire_observe(fig, grad_w, was_dual)
+        # forced after MAX_INNER iterations without one; the first one waits FIRST_INNER beyond
+        # the fall from the spread ball (twice ~(SPREAD - 1) R / VMAX iterations at the speed
+        # cap); none while the overlap is within the hold (only stationarity is missing)
+        wait = MAX_INNER if s["dual_steps"] >= 1 else FIRST_INNER + self.fall_iterations
+        if s["qn"] and fig["max_overlap"] > self.overlap_tol:
+            wait = QN_MAX_INNER
+        stalled = (MAX_INNER > 0 and s["since_dual"] >= wait
+                   and fig["max_overlap"] > self.hold_overlap)
+        if not was_dual and s["since_dual"] >= MIN_INNER and (s["inner_residual"] <= s["eta"] or stalled):
+            s["dual_now"] = True
+            s["dual_steps"] += 1
+            if fig["max_overlap"] > PEN_GROW * s["ov_dual"]:
+                s["cb"] = min(self.cb_grow * s["cb"], CB_MAX)
+            s["ov_dual"] = fig["max_overlap"]
+            s["since_dual"] = 0
+            s["eta"] = max(ETA_MIN, s["eta"] * ETA_F)
+            if s["qn"]:
+                self.lbfgs.reset()  # the multipliers change L_rho: the memory is of another function
+            elif QN_AT_CAP and s["cb"] >= CB_MAX:
+                # from the next inner solve on, L-BFGS; its first step a gradient step at the
+                # stiffest row's scale (k_rel bounds Hess L_rho's largest eigenvalue)
+                s["qn"] = True
+                s["qn_from"] = fig["iteration"] + 1
+                k_rel = max(fig["max_row"] / s["b"], 1.0)
+                self.lbfgs = qn.LBFGS(qn.MEMORY[self.dim], h0=1.0 / k_rel)
+
+    def _fire_observe(self, fig, grad_w, was_dual):
+        """FIRE's part of ``observe``: the inner residual, restarts, dt and the mixing."""
+        s = self.s
         b_prev = s["b"]
         k_rel = max(fig["max_row"] / b_prev, 1.0)
         s["dt_max"] = DT_LEAPFROG * math.sqrt(1.0 / k_rel)
         grad = math.sqrt(fig["force2"]) / b_prev  # ||grad L_rho||
-        grad_w = math.sqrt(2.0 * fig["W"])
-        was_dual = s["dual_now"]
         s["inner_residual"] = grad / grad_w if grad_w > 0 else math.inf
         s["speed_ratio"] = math.sqrt(fig["change2"]) / (s["dt"] * grad) if grad > 0 else 0.0
-        s["since_dual"] += 1
-        s["dual_now"] = False
         if fig["power"] < 0 and not was_dual:
             s["pending"] = ["restart"]
             s["restarts"] += 1
@@ -209,20 +276,6 @@ class FireAL:
                 s["dt"] = min(s["dt"] * F_INC, s["dt_max"])
                 s["mix"] *= F_MIX
         s["dt"] = min(s["dt"], s["dt_max"])
-        # forced after MAX_INNER iterations without one; the first one waits FIRST_INNER beyond
-        # the fall from the spread ball (twice ~(SPREAD - 1) R / VMAX iterations at the speed
-        # cap); none while the overlap is within the hold (only stationarity is missing)
-        wait = MAX_INNER if s["dual_steps"] >= 1 else FIRST_INNER + self.fall_iterations
-        stalled = (MAX_INNER > 0 and s["since_dual"] >= wait
-                   and fig["max_overlap"] > self.hold_overlap)
-        if not was_dual and s["since_dual"] >= MIN_INNER and (s["inner_residual"] <= s["eta"] or stalled):
-            s["dual_now"] = True
-            s["dual_steps"] += 1
-            if fig["max_overlap"] > PEN_GROW * s["ov_dual"]:
-                s["cb"] = min(self.cb_grow * s["cb"], CB_MAX)
-            s["ov_dual"] = fig["max_overlap"]
-            s["since_dual"] = 0
-            s["eta"] = max(ETA_MIN, s["eta"] * ETA_F)
 
     # ---- before an iteration -----------------------------------------------------------------
     def take_pending(self):
@@ -238,12 +291,17 @@ class FireAL:
             a3 = a4 * self.phi_scale
             q = (Q_GENTLE if s.get("spread") else Q_EXPLODE) if s["phase"] == "explode" else 0.5
             return 1.0, 0.0, a3, a4, q / (a3 * s["gain"]), 0.0, False, False, self.explode_cap
+        cb = s["cb"]
+        if s["qn"]:
+            if s["dual_now"]:  # the multiplier step alone: a3 = 0 moves nothing
+                return 1.0, 0.0, 0.0, 0.0, cb, self.lam_floor, True, True, 0.0
+            # L-BFGS's gradient pass: x_new = X^n - grad L_rho (``kernels_qn``)
+            return 1.0, 0.0, 1.0, cb, 0.0, self.lam_floor, True, True, 0.0
         dt, mix = s["dt"], s["mix"]
         a = (1.0 - mix) * dt / s["dt_prev"]
         b = (1.0 - mix) * dt * dt + mix * dt * dt * s["speed_ratio"]
         s["dt_prev"], s["b"] = dt, b
         # rho = c_b max(lambda, lam_fl) per unit of phi / d_ij^p (the kernel divides)
-        cb = s["cb"]
         if s["dual_now"]:  # the multiplier step: lambda + rho phi, penalty off
             a4, beta = 0.0, cb
         else:
@@ -258,14 +316,23 @@ class FireAL:
 
     # ---- checkpoint ----------------------------------------------------------------------------
     def save(self):
-        return {k: (list(v) if isinstance(v, list) else v) for k, v in self.s.items()}
+        out = {k: (list(v) if isinstance(v, list) else v) for k, v in self.s.items()}
+        out["lbfgs"] = self.lbfgs.save()
+        return out
 
     def restore(self, saved):
+        saved = dict(saved)
+        lbfgs = saved.pop("lbfgs", None)
         self.s.update(saved)
         self.s["pending"] = list(saved.get("pending", []))
+        if lbfgs is not None:
+            self.lbfgs.restore(lbfgs)
 
     def summary(self):
         s = self.s
         return {"phase": s["phase"], "switch_iteration": s["switch_iteration"],
                 "spread": bool(s.get("spread")), "restarts": s["restarts"], "dual_steps": s["dual_steps"],
-                "penalty_factor": s["cb"]}
+                "penalty_factor": s["cb"],
+                "lbfgs_from": s["qn_from"] if s["qn"] else None,
+                "lbfgs_resets": self.lbfgs.s["resets"] if s["qn"] else 0,
+                "lbfgs_rejected": self.lbfgs.s["rejected"] if s["qn"] else 0}

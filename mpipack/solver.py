@@ -16,7 +16,10 @@ One iteration of DAHA / AHA, n -> n+1 (every rank, in lock step):
 Under the fire-al schedule (``method.schedule``, the default of DAHA scenes that set no
 parameters) the step kernel is ``kernels_fire``'s, and ``schedule.FireAL`` sets its
 coefficients before every pass from the previous iteration's reduced figures (``docs/
-convergence.md``); the loop is the same.
+convergence.md``); the loop is the same. Once its penalty is at the cap an iteration is an
+L-BFGS step (``_qn_advance``): the same kernel as a gradient pass, the memory's dots
+(``kernels_qn``) in the same ONE allreduce, the direction from the Gram matrix (``qn``), then
+the per-sphere step before the ghosts are refreshed.
 
 NAP and NAV run the same step/reduce/forward cycle for each inner iteration, with the
 constraints linearised about the outer iterate X^p (``nested.outer_step``). End-of-run
@@ -39,7 +42,8 @@ import time
 import numpy as np
 
 from . import comm as comm_mod
-from . import domain, exactsum, hooks as hooks_mod, init, kernels, measures, neighbors, nested
+from . import domain, exactsum, hooks as hooks_mod, init, kernels, kernels_qn, measures, neighbors, nested
+from . import qn
 from . import rebuild as rebuild_mod
 from .certify import Certifier
 from .reduction import Reduction
@@ -142,6 +146,8 @@ class Solver:
         # a stop asked for by a signal on any rank (``request_stop``): all ranks see it together
         self.red.add_max("stop_request", [("stop_request", 1)], fill=lambda: _STOP_REQUEST[0])
         self._disp_bound = 0.0  # upper bound of the displacement since the rows were built
+        self._qn_cap_pending = 0.0  # an L-BFGS step's assumed move in the bound, until reduced
+        self._red_qn = None
         # pair-row budget of this rank: neighbor.max_pair_gib, or its share of the node's
         # available memory (under a batch system's memory limit, set the key)
         gib = scene.neighbor.max_pair_gib
@@ -166,9 +172,10 @@ class Solver:
         fields = [("step2", 1), ("overlap", 1)]
         return fields + [("max_gain", 1), ("max_row", 1)] if self.schedule else fields
 
-    def _kernel_pass(self, x_other, xbar, red, n_local=None):
+    def _kernel_pass(self, x_other, xbar, red, n_local=None, all_sums=True):
         """One pass of the step kernel over the local particles (the first ``n_local``) into
-        ``red``'s step blocks; returns the number of row entries with lambda > 0."""
+        ``red``'s step blocks; returns the number of row entries with lambda > 0. all_sums
+        False (the fire-al kernel as L-BFGS's gradient pass): of the exact sums only |X^n|^2."""
         st = self.state
         n_local = st.n_local if n_local is None else n_local
         args = (st.x, x_other, st.x_new, n_local, st.diam, st.pair_offsets, st.pair_j,
@@ -179,7 +186,7 @@ class Solver:
         coeffs = self.sched_coeffs
         # the fire phase updates lambda every pass (its dual steps); the explosion is DAHA
         update = self.schedule.phase == "fire" or not st.lambda_fresh
-        return self._kernel(*args, *coeffs, update, red.acc("step"), red.maxima("step"))
+        return self._kernel(*args, *coeffs, update, red.acc("step"), red.maxima("step"), all_sums)
 
     def advice(self):
         """A parameter change that would help an unstable or stalled run of this method."""
@@ -222,18 +229,24 @@ class Solver:
             local = {"x": source.x, "x_prev": source.x_prev, "gid": source.gids, "diam": source.diam}
             if self.nested:
                 local["x_lin"] = source.x_lin
+            if source.qn is not None:
+                local["qn"] = source.qn
             hist = (source.hist_offsets(), source.hist_gid, source.hist_lambda)
             st.lambda_fresh, st.iteration = bool(source.lambda_fresh), int(source.iteration)
             self.counters.update(source.counters)
             if self.schedule is not None and "schedule" in source.extra:
                 self.schedule.restore(source.extra["schedule"])
-        ghost = {k: v[:0] for k, v in local.items() if k != "x_prev"}
+        ghost = {k: v[:0] for k, v in local.items() if k not in ("x_prev", "qn")}
         lam_fresh = st.lambda_fresh
         st.set_particles(local, ghost)
         st.lambda_fresh = lam_fresh
         self.rebuild(rebalance=True, hist=hist)
         self._break_coincidence()
         self.xbar, w0 = self._centre_of_mass()
+        if source is not None and self.schedule is not None and self.schedule.s["qn"] \
+                and "xbar" in self.schedule.lbfgs.s:
+            # the L-BFGS pass uses the previous iterate's centre of mass (``_qn_advance``)
+            self.xbar = np.array(self.schedule.lbfgs.s["xbar"], dtype=np.float64)
         # natural size: the start's radius of gyration, or a packing's, whichever is larger
         r_start = math.sqrt(2.0 * max(w0, 0.0) / self.n)
         self.r_natural = max(r_start, self.d_max * self.n ** (1.0 / self.dim))
@@ -293,8 +306,15 @@ class Solver:
         st = self.state
         if self.schedule is not None:
             self._schedule_before()
-        fig = self._advance(st.x_prev, self.xbar)  # (2.10b) then (2.10a)
+        if self.schedule is not None and self.schedule.phase == "fire" and self.schedule.quasi_newton_pass():
+            fig = self._qn_advance()
+        else:
+            fig = self._advance(st.x_prev, self.xbar)  # (2.10b) then (2.10a)
         self.xbar = fig.pop("xbar")
+        if self.schedule is not None and self.schedule.s["qn"]:
+            # the next pass's centre of mass, which an L-BFGS pass does not recompute: a
+            # checkpoint carries it (the schedule's state)
+            self.schedule.lbfgs.s["xbar"] = self.xbar.tolist()
         st.iteration += 1
         fig["iteration"] = st.iteration
         if self.schedule is not None:
@@ -330,10 +350,7 @@ class Solver:
         t.lap(STEP)
         red.set_count("active", n_active)
         red.reduce(self.comm)
-        if red.overflowed() or not red.all_maxima_finite():
-            raise NumericalError(
-                f"non-finite or diverging positions at iteration {st.iteration + 1} "
-                f"(NaN/Inf, or |X|^2 beyond {exactsum.RANGE:.3g}); {self.advice()}", self, "non-finite")
+        self._check_finite(red)
         dx2, xx2 = red.value("dx2"), red.value("xx2")
         max_step = math.sqrt(red.max("step2"))
         fig = {
@@ -342,27 +359,113 @@ class Solver:
             "W": 0.5 * (xx2 - self.n * float(xbar @ xbar)),
             "relative_change": math.sqrt(dx2 / xx2) if xx2 > 0 else (0.0 if dx2 == 0 else math.inf),
             "change2": dx2,
-            "max_overlap": red.max("overlap"),
-            "active_pairs": red.count("active") // 2,
             "max_step": max_step,
-            "max_local": int(red.max("max_local")),
-            "wall": red.max("wall"),
         }
         if self.schedule is not None:
             fig.update(power=red.value("power"), force2=red.value("force2"),
                        max_gain=red.max("max_gain"), max_row=red.max("max_row"))
-        r_gyr = math.sqrt(2.0 * max(fig["W"], 0.0) / self.n)
-        if r_gyr > self.r_diverge:
-            raise NumericalError(
-                f"the cloud diverges: radius of gyration {r_gyr:.3g} at iteration {st.iteration + 1}, "
-                f"{DIVERGENCE_FACTOR:g} times its natural size; {self.advice()}", self)
-        fig["imbalance"] = fig["max_local"] * self.comm.size / self.n
-        self.counters["max_imbalance"] = max(self.counters["max_imbalance"], fig["imbalance"])
-        fig["stop_request"] = red.max("stop_request") > 0
+        self._common_figures(red, fig)
         t.lap(REDUCE)
         st.rotate()
         st.lambda_fresh = False  # X^{n+1} now; lambda^n is the previous one
         self._refresh_ghosts(max_step)
+        return fig
+
+    def _check_finite(self, red):
+        """Numerical trouble in the reduced figures (NaN/Inf, an exact sum out of range)."""
+        if red.overflowed() or not red.all_maxima_finite():
+            raise NumericalError(
+                f"non-finite or diverging positions at iteration {self.state.iteration + 1} "
+                f"(NaN/Inf, or |X|^2 beyond {exactsum.RANGE:.3g}); {self.advice()}", self, "non-finite")
+
+    def _common_figures(self, red, fig):
+        """The figures every kind of iteration reports (max overlap, active pairs, load, wall,
+        a stop request) into ``fig``, which holds W; raises if the cloud diverges."""
+        fig.update(max_overlap=red.max("overlap"), active_pairs=red.count("active") // 2,
+                   max_local=int(red.max("max_local")), wall=red.max("wall"))
+        r_gyr = math.sqrt(2.0 * max(fig["W"], 0.0) / self.n)
+        if r_gyr > self.r_diverge:
+            raise NumericalError(
+                f"the cloud diverges: radius of gyration {r_gyr:.3g} at iteration {self.state.iteration + 1}, "
+                f"{DIVERGENCE_FACTOR:g} times its natural size; {self.advice()}", self)
+        fig["imbalance"] = fig["max_local"] * self.comm.size / self.n
+        self.counters["max_imbalance"] = max(self.counters["max_imbalance"], fig["imbalance"])
+        fig["stop_request"] = red.max("stop_request") > 0
+
+    def _qn_reduction(self):
+        """The reduction of an L-BFGS iteration: the step kernel's blocks as in ``_advance``,
+        and the memory's (``kernels_qn.dots``): the new gradient's dots with the 2m + 1 slots
+        and itself, the centre of mass of X^n, and the last step's |s|^2, max |s_i|^2 and
+        shortened steps."""
+        if getattr(self, "_red_qn", None) is None:
+            k = qn.slots(self.schedule.lbfgs.m)
+            red = Reduction()
+            red.add_exact("step", self._step_sums())
+            red.add_max("step", self._step_maxima())
+            red.add_exact("qn", [("qn_dots", k + 1), ("qn_x", self.dim), ("qn_move2", 1)])
+            red.add_max("qn", [("qn_step2", 1)])
+            red.add_count("active")
+            red.add_count("qn_clipped")
+            red.add_max("load", [("max_local", 1)], fill=lambda: self.state.n_local)
+            red.add_max("wall", [("wall", 1)], fill=lambda: time.perf_counter() - self.clock0)
+            red.add_max("stop_request", [("stop_request", 1)], fill=lambda: _STOP_REQUEST[0])
+            self._red_qn = red
+        return self._red_qn
+
+    def _qn_advance(self):
+        """One L-BFGS iteration of the fire-al schedule's inner solve (``qn``, ``kernels_qn``):
+        the gradient g = grad L_rho at X^n (the fire-al kernel as a gradient pass), its dots
+        with the memory, ONE reduction, the direction p = -H g from the Gram matrix (the same
+        scalars on every rank), X^{n+1} = X^n + p (each sphere's move at most qn.TRUST d).
+
+        The gradient's grad W = X_i - Xbar uses the centre of mass of the previous iterate
+        (this one's is reduced with the gradient): every step is a combination of gradients,
+        whose sum over the spheres is N (Xbar^n - Xbar^{n-1}), so that the centre of mass moves
+        only by rounding and shortened steps. W is that of X^n with its own Xbar."""
+        st, t = self.state, self.timers
+        sched, lb = self.schedule, self.schedule.lbfgs
+        red = self._qn_reduction().begin()
+        k, n = qn.slots(lb.m), st.n_local
+        if st.qn is None or st.qn.shape[1] != k:
+            st.qn = np.zeros((n, k, self.dim))
+        n_active = self._kernel_pass(st.x_prev, self.xbar, red, all_sums=False)  # x_new = X^n - g
+        cap = qn.TRUST * sched.d
+        head = lb.s["head"] if lb.s["stepped"] else -1
+        clipped = kernels_qn.dots(st.x, st.x_new, n, st.qn, head, cap, red.acc("qn"), red.maxima("qn"))
+        t.lap(STEP)
+        red.set_count("active", n_active)
+        red.set_count("qn_clipped", clipped)
+        red.reduce(self.comm)
+        self._check_finite(red)
+        xbar = red.values("qn_x") / self.n
+        xx2, move2 = red.value("xx2"), red.value("qn_move2")
+        dots = red.values("qn_dots")  # g.S_j, g.Y_j, g.G_OLD, g.g
+        if self._qn_cap_pending > 0.0:  # the bound assumed a move of cap; now the real one
+            self._disp_bound = max(0.0, self._disp_bound - self._qn_cap_pending
+                                   + math.sqrt(red.max("qn_step2")))
+        fig = {
+            "xbar": xbar,
+            "W": 0.5 * (xx2 - self.n * float(xbar @ xbar)),
+            # the change of the last step (X^n - X^{n-1})
+            "relative_change": math.sqrt(move2 / xx2) if xx2 > 0 else 0.0,
+            "change2": move2,
+            "max_step": math.sqrt(red.max("qn_step2")),
+            "power": 0.0, "force2": float(dots[-1]),
+            "max_gain": red.max("max_gain"), "max_row": red.max("max_row"),
+        }
+        self._common_figures(red, fig)
+        coef, y_slot, s_slot, _ = lb.direction(dots, red.count("qn_clipped") > 0)
+        t.lap(REDUCE)
+        if coef is None:
+            kernels_qn.backtrack(st.x, st.x_new, n, st.qn, s_slot)
+        else:
+            kernels_qn.direction(st.x, st.x_new, n, st.qn, coef, y_slot, s_slot, cap)
+        st.rotate()
+        st.lambda_fresh = False
+        t.lap(STEP)
+        self._disp_bound += cap
+        self._qn_cap_pending = cap
+        self._refresh_ghosts(0.0)
         return fig
 
     def _refresh_ghosts(self, max_move):
@@ -379,6 +482,7 @@ class Solver:
         if self._disp_bound > 0.5 * self.skin:
             local = neighbors.max_displacement2(st.x, st.x_build, st.n_local)
             exact = math.sqrt(self.comm.allreduce(np.array([local]), op="max")[0])
+            self._qn_cap_pending = 0.0  # the bound is now exact (or zero after the rebuild)
             if exact > 0.5 * self.skin or not math.isfinite(exact):
                 self.timers.lap(FORWARD)
                 self.rebuild()

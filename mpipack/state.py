@@ -13,6 +13,8 @@ Shapes (n_total = n_local + n_ghost, b = dim):
 
     x_lin    (n_total, b)  NAP/NAV only: the outer iterate X^p the constraints are linearised
                            about (ghost rows too); None for DAHA/AHA
+    qn       (n_local, 2m+2, b)  the L-BFGS inner solver's per-sphere memory (``qn``), local
+                           rows only; None until the fire-al schedule switches to it
 
 ``lambda_fresh`` is True when pair_lambda already holds lambda for the current X (at the start,
 lambda^0; after ``finish``), False when it holds lambda^{n-1} and the next step must first
@@ -39,6 +41,7 @@ class BlockState:
 
         x, x_prev      (m, b)   X^n and X^{n-1}
         x_lin          (m, b)   NAP/NAV's linearisation point X^p, else None
+        qn             (m, 2k+2, b)  the L-BFGS memory (``State.qn``), else None
         diam           (m,)
         hist_count     (m,)     int64, partners with lambda > 0 of each particle
         hist_gid       (k,)     int64, their gids (each particle's run in gid order)
@@ -58,6 +61,7 @@ class BlockState:
     hist_gid: np.ndarray
     hist_lambda: np.ndarray
     x_lin: Optional[np.ndarray] = None
+    qn: Optional[np.ndarray] = None
     iteration: int = 0
     lambda_fresh: bool = True
     counters: dict = field(default_factory=dict)
@@ -89,6 +93,7 @@ class State:
         self.pair_j = np.zeros(0, dtype=np.int32)
         self.pair_lambda = np.zeros(0)
         self.x_lin = None  # linearisation point X^p of the nested methods (n_total, b)
+        self.qn = None  # the L-BFGS memory (n_local, 2m+2, b), once the schedule uses it
         self.lambda_fresh = True
         self.iteration = 0
 
@@ -113,6 +118,8 @@ class State:
         self.diam = np.concatenate([local["diam"], ghost["diam"]]).astype(np.float64)
         if "x_lin" in local:
             self.x_lin = np.concatenate([local["x_lin"], ghost["x_lin"]]).reshape(n, self.dim)
+        if "qn" in local:
+            self.qn = np.ascontiguousarray(local["qn"])
 
     def local_fields(self):
         """Copies of the per-particle arrays that travel with a local particle."""
@@ -121,6 +128,8 @@ class State:
                "gid": self.gid[:n].copy(), "diam": self.diam[:n].copy()}
         if self.x_lin is not None:
             out["x_lin"] = self.x_lin[:n].copy()
+        if self.qn is not None:
+            out["qn"] = self.qn[:n].copy()
         return out
 
     def rotate(self):

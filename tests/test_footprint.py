@@ -12,13 +12,13 @@ from conftest import REPO, describe, mpi_env
 
 PROBE = r"""
 import sys
-from mpipack import cli, kernels, kernels_fire, neighbors
+from mpipack import cli, kernels, kernels_fire, kernels_qn, neighbors
 rc = cli.main(["run", "--quiet", "--out", sys.argv[1], "--set", "stop.rule=eps", "--set", "stop.eps=0"]
               + sys.argv[2:])
 assert rc == 0, rc
 heavy = sorted(m for m in ("h5py", "matplotlib", "meshio", "scipy") if m in sys.modules)
 compiled = []
-for prefix, module in (("", kernels), ("fire:", kernels_fire), ("nb:", neighbors)):
+for prefix, module in (("", kernels), ("fire:", kernels_fire), ("qn:", kernels_qn), ("nb:", neighbors)):
     for name in dir(module):
         if getattr(getattr(module, name), "signatures", None):  # a numba dispatcher, called
             compiled.append(prefix + name)
@@ -50,10 +50,11 @@ def test_plain_run_imports_no_output_libraries(tmp_path):
     (["dim=3", "method.form=NS", "n=60", "method.schedule=fixed"], {"step_ns3", "metrics_ns", "nb:_build_rows_3"},
      {"step_s1", "step_s2", "step_s3", "step_ns1", "step_ns2", "metrics_s", "nap_s", "nap_ns",
       "nav_s", "nav_ns", "nb:_build_rows_1", "nb:_build_rows_2", "fire:fire_ns3"}),
-    # the default schedule: its own kernel, and not DAHA's fixed-parameter one
+    # the default schedule: its own kernel, and not DAHA's fixed-parameter one, nor L-BFGS's
+    # before its penalty factor reaches the cap
     (["dim=3", "method.form=NS", "n=60"], {"fire:fire_ns3", "metrics_ns", "nb:_build_rows_3"},
      {"step_s3", "step_ns3", "fire:fire_s3", "fire:fire_ns2", "fire:fire_s2", "metrics_s",
-      "nb:_build_rows_2"}),
+      "nb:_build_rows_2", "qn:dots", "qn:direction", "qn:backtrack"}),
     (["method.name=nap", "method.form=S", "n=40", "method.alpha=0.1", "method.beta=0.1"],
      {"nap_s", "metrics_s", "nb:_build_rows_2"},
      {"step_s1", "step_s2", "step_s3", "step_ns1", "step_ns2", "step_ns3", "metrics_ns", "nap_ns",

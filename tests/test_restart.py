@@ -20,6 +20,9 @@ CASES = {
     # expanding Gaussian start: migrations, rebuilds, far partners on several ranks
     "daha": ["n=300"] + FIXED,
     "fire": ["n=300", "method.schedule=\"fire-al\""] + FIXED,
+    # 3D: the penalty factor reaches its cap at iteration ~1240 and the inner solves are
+    # L-BFGS's from there (the per-sphere memory migrates and is checkpointed)
+    "fire-qn": ["n=200", "dim=3"] + FIXED,
     "nap": ["n=60", "method.name=nap", "method.form=NS", "method.alpha=0.1", "method.beta=0.16",
             "method.l_inner=20"] + FIXED,
 }
@@ -33,6 +36,7 @@ def run_cli(P, workdir, sets, extra=(), timeout=300):
 @pytest.mark.parametrize("case,total,split,ranks", [
     ("daha", 600, 250, (1, 3)), ("daha", 600, 300, (3, 2)), ("nap", 40, 15, (1, 3)), ("nap", 40, 20, (3, 2)),
     ("fire", 900, 350, (1, 3)), ("fire", 900, 600, (3, 2)),
+    ("fire-qn", 2000, 1700, (1, 3)), ("fire-qn", 2000, 1900, (3, 2)),
 ])
 def test_restart_on_other_rank_counts_is_bitwise(tmp_path, case, total, split, ranks):
     sets = CASES[case]
@@ -48,6 +52,9 @@ def test_restart_on_other_rank_counts_is_bitwise(tmp_path, case, total, split, r
     assert s2["iterations"] == total and s2["ranks"] == second and s2["restart_from"]
     assert_bitwise_equal(d_ref, d2, f"{case}: {first} ranks to {split}, then {second} ranks to {total}")
     assert s2["W"] == s_ref["W"]
+    if case == "fire-qn":  # the checkpoint was taken in the L-BFGS phase
+        assert s_ref["schedule"]["lbfgs_from"] < split, s_ref["schedule"]
+        assert s2["schedule"] == s_ref["schedule"]
 
 
 def test_restart_refuses_a_change_of_physics(tmp_path):
