@@ -13,7 +13,7 @@ Shapes (n_total = n_local + n_ghost, b = dim):
 
     x_lin    (n_total, b)  NAP/NAV only: the outer iterate X^p the constraints are linearised
                            about (ghost rows too); None for DAHA/AHA
-    qn       (n_local, 2m+2, b)  the L-BFGS inner solver's per-sphere memory (``qn``), local
+    qn       (n_local, 2m+1, b)  the L-BFGS inner solver's per-sphere memory (``qn``), local
                            rows only; None until the fire-al schedule switches to it
 
 ``lambda_fresh`` is True when pair_lambda already holds lambda for the current X (at the start,
@@ -41,7 +41,7 @@ class BlockState:
 
         x, x_prev      (m, b)   X^n and X^{n-1}
         x_lin          (m, b)   NAP/NAV's linearisation point X^p, else None
-        qn             (m, 2k+2, b)  the L-BFGS memory (``State.qn``), else None
+        qn             (m, 2k+1, b)  the L-BFGS memory (k pairs) (``State.qn``), else None
         diam           (m,)
         hist_count     (m,)     int64, partners with lambda > 0 of each particle
         hist_gid       (k,)     int64, their gids (each particle's run in gid order)
@@ -93,7 +93,7 @@ class State:
         self.pair_j = np.zeros(0, dtype=np.int32)
         self.pair_lambda = np.zeros(0)
         self.x_lin = None  # linearisation point X^p of the nested methods (n_total, b)
-        self.qn = None  # the L-BFGS memory (n_local, 2m+2, b), once the schedule uses it
+        self.qn = None  # the L-BFGS memory (n_local, 2m+1, b), once the schedule uses it
         self.lambda_fresh = True
         self.iteration = 0
 
