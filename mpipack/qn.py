@@ -55,7 +55,6 @@ class LBFGS:
         self.s = {"k": 0, "head": m - 1, "stepped": False, "h0": float(h0),
                   "resets": 0, "rejected": 0, "backtracks": 0, "clipped": 0, "curvature": 0}
         self.B = np.zeros((2 * m + 1, 2 * m + 1))
-        self.c = np.zeros(2 * m + 1)
 
     # ---- state -----------------------------------------------------------------------------
     def reset(self):
@@ -66,14 +65,13 @@ class LBFGS:
 
     def save(self):
         out = dict(self.s)
-        out["m"], out["B"], out["c"] = self.m, self.B.tolist(), self.c.tolist()
+        out["m"], out["B"] = self.m, self.B.tolist()
         return out
 
     def restore(self, saved):
         saved = dict(saved)
         self.m = int(saved.pop("m", self.m))
         self.B = np.array(saved.pop("B"), dtype=np.float64)
-        self.c = np.array(saved.pop("c"), dtype=np.float64)
         self.s.update(saved)
 
     # ---- one iteration ---------------------------------------------------------------------
@@ -166,5 +164,4 @@ class LBFGS:
             s["k"] = m - 1  # the oldest pair was in this slot
         s["head"] = new
         s["stepped"] = True
-        self.c = c
         return c, y_slot, new, accepted

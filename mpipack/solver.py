@@ -243,10 +243,9 @@ class Solver:
         self.rebuild(rebalance=True, hist=hist)
         self._break_coincidence()
         self.xbar, w0 = self._centre_of_mass()
-        if source is not None and self.schedule is not None and self.schedule.s["qn"] \
-                and "xbar" in self.schedule.lbfgs.s:
+        if source is not None and "qn_xbar" in source.extra:
             # the L-BFGS pass uses the previous iterate's centre of mass (``_qn_advance``)
-            self.xbar = np.array(self.schedule.lbfgs.s["xbar"], dtype=np.float64)
+            self.xbar = np.array(source.extra["qn_xbar"], dtype=np.float64)
         # natural size: the start's radius of gyration, or a packing's, whichever is larger
         r_start = math.sqrt(2.0 * max(w0, 0.0) / self.n)
         self.r_natural = max(r_start, self.d_max * self.n ** (1.0 / self.dim))
@@ -306,15 +305,11 @@ class Solver:
         st = self.state
         if self.schedule is not None:
             self._schedule_before()
-        if self.schedule is not None and self.schedule.phase == "fire" and self.schedule.quasi_newton_pass():
+        if self.schedule is not None and self.schedule.quasi_newton_pass():
             fig = self._qn_advance()
         else:
             fig = self._advance(st.x_prev, self.xbar)  # (2.10b) then (2.10a)
         self.xbar = fig.pop("xbar")
-        if self.schedule is not None and self.schedule.s["qn"]:
-            # the next pass's centre of mass, which an L-BFGS pass does not recompute: a
-            # checkpoint carries it (the schedule's state)
-            self.schedule.lbfgs.s["xbar"] = self.xbar.tolist()
         st.iteration += 1
         fig["iteration"] = st.iteration
         if self.schedule is not None:
@@ -397,7 +392,7 @@ class Solver:
         and the memory's (``kernels_qn.dots``): the new gradient's dots with the 2m + 1 slots
         and itself, the centre of mass of X^n, and the last step's |s|^2, max |s_i|^2 and
         shortened steps."""
-        if getattr(self, "_red_qn", None) is None:
+        if self._red_qn is None:
             k = qn.slots(self.schedule.lbfgs.m)
             red = Reduction()
             red.add_exact("step", self._step_sums())
@@ -539,7 +534,10 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
         watchdog.restore(source.extra["watchdog"])
     solver.run_state = lambda: {"certifier": certifier.save(),
                                 **({"schedule": solver.schedule.save()} if solver.schedule else {}),
-                                **({"watchdog": watchdog.save()} if watchdog else {})}
+                                **({"watchdog": watchdog.save()} if watchdog else {}),
+                                # an L-BFGS pass does not recompute the next pass's Xbar
+                                **({"qn_xbar": solver.xbar.tolist()} if solver.schedule
+                                   and solver.schedule.s["qn"] else {})}
     certified_rule = stop_rule.rule == "certified"
     ctx = hooks_mod.Context(solver)
     start_iter = solver.state.iteration
