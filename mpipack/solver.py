@@ -16,8 +16,8 @@ One iteration of DAHA / AHA, n -> n+1 (every rank, in lock step):
 Under the fire-al schedule (``method.schedule``, the default of DAHA scenes that set no
 parameters) the step kernel is ``kernels_fire``'s, and ``schedule.FireAL`` sets its
 coefficients before every pass from the previous iteration's reduced figures (``docs/
-convergence.md``); the loop is the same. Once its penalty is at the cap an iteration is an
-L-BFGS step (``_qn_advance``): the same kernel as a gradient pass, the memory's dots
+convergence.md``); the loop is the same. Once its penalty is stiff (``schedule.QN_FROM_CB``)
+an iteration is an L-BFGS step (``_qn_advance``): the same kernel as a gradient pass, the memory's dots
 (``kernels_qn``) in the same ONE allreduce, the direction from the Gram matrix (``qn``), then
 the per-sphere step before the ghosts are refreshed.
 

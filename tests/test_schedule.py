@@ -87,3 +87,24 @@ def test_the_penalty_factor_grows_while_the_overlap_does_not_halve_up_to_its_cap
     sch.coefficients()
     sch.observe(figure(sch, it, 0.01))  # the iteration after a step at a grown factor
     assert sch.coefficients()[4] == 0.0
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_inner_solves_turn_to_lbfgs_once_the_penalty_is_stiff(dim):
+    """L-BFGS from the multiplier step at which c_b reaches QN_FROM_CB: 256 in 2D (a crystal
+    holds under it), the cap 1024 in 3D (a softer glass rearranges after every step)."""
+    sch = fire_schedule(dim=dim)
+    assert schedule.QN_FROM_CB[dim] == {2: 256.0, 3: 1024.0}[dim]
+    it, seen = 2, []
+    while not sch.s["qn"]:
+        step = run_until_step(sch, it, 0.01, schedule.FIRST_INNER + sch.fall_iterations + 10)
+        assert step is not None and len(seen) < 12
+        seen.append(sch.s["cb"])
+        it = step + 1
+    assert sch.s["cb"] == schedule.QN_FROM_CB[dim], seen
+    assert all(cb < schedule.QN_FROM_CB[dim] for cb in seen[:-1]), seen
+    assert sch.s["qn_from"] == step + 1
+    assert sch.quasi_newton_pass() is False  # the multiplier step's pass comes first
+    sch.coefficients()
+    sch.observe(figure(sch, it, 0.01))
+    assert sch.quasi_newton_pass()
