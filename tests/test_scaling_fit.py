@@ -1,4 +1,5 @@
-"""tools/scaling_fit.py: medians over certified runs only, the least-squares exponent, the CLI."""
+"""tools/scaling_fit.py: medians with the uncertified runs counted as the slowest, the
+least-squares exponent, the CLI."""
 
 import json
 import subprocess
@@ -18,8 +19,8 @@ def rows_for(dim, law):
         for seed, factor in enumerate((0.9, 1.0, 1.1)):
             rows.append({"n": n, "dim": dim, "seed": seed, "converged": True,
                          "iterations": factor * law(n), "seconds": factor * law(n) * n * 1e-6})
-        # an uncertified run far off: counted, not in the medians
-        rows.append({"n": n, "dim": dim, "seed": 9, "converged": False, "iterations": 1e9, "seconds": 1e9})
+        # an uncertified run: counted as the slowest, whatever figures it stopped at
+        rows.append({"n": n, "dim": dim, "seed": 9, "converged": False, "iterations": 1.0, "seconds": 1.0})
     return rows
 
 
@@ -27,7 +28,8 @@ def test_medians_and_exponent():
     rows = rows_for(2, lambda n: 7.0 * n ** 0.5) + rows_for(3, lambda n: 3.0 * n ** 0.8)
     table = scaling_fit.medians(rows)
     assert [e[:3] for e in table[2]] == [(1000, 3, 4), (4000, 3, 4), (16000, 3, 4)]
-    assert table[2][0][3] == pytest.approx(7.0 * 1000 ** 0.5)
+    # the median of 0.9, 1.0, 1.1 and a run above them all: (1.0 + 1.1) / 2 of the law
+    assert table[2][0][3] == pytest.approx(1.05 * 7.0 * 1000 ** 0.5)
     fits = scaling_fit.report(table, 1000, 16000)
     assert fits[2][0] == pytest.approx(0.5) and fits[2][1] == pytest.approx(1.5)
     assert fits[3][0] == pytest.approx(0.8)
@@ -43,3 +45,12 @@ def test_cli_writes_the_plot(tmp_path):
                            "--png", str(png)], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert "iterations ~ N^0.50" in proc.stdout and png.stat().st_size > 10000
+
+
+def test_a_median_on_an_uncertified_run_is_not_given():
+    ok = {"n": 100, "dim": 2, "converged": True, "iterations": 500, "seconds": 1.0}
+    bad = {"n": 100, "dim": 2, "converged": False, "iterations": 100000, "seconds": 50.0}
+    assert scaling_fit.medians([ok, bad, bad])[2] == [(100, 1, 3, None, None)]
+    assert scaling_fit.medians([ok, ok, bad])[2] == [(100, 2, 3, 500, 1.0)]
+    # two certified, two not: the median's upper half is a failed run
+    assert scaling_fit.medians([ok, ok, bad, bad])[2][0][3] is None

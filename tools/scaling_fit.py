@@ -1,6 +1,6 @@
 """How do iterations and wall time to a certified packing grow with N? Reads the JSON lines of
 `tools/convergence_sweep.py --json FILE` (any number of files, any dimensions), takes per (dim,
-N) the median over the certified runs, fits log(median) = a + k log N by least squares over a
+N) the median (runs that did not certify counting as the slowest), fits log(median) = a + k log N by least squares over a
 range of N, prints the exponent k beside the target 1/b (the cluster's diameter in sphere
 diameters grows like N^(1/b)), and draws iterations and seconds against N (log-log, one colour
 per dimension, every run as a dot, medians joined; dotted: the slope N^(1/b) for iterations and
@@ -8,7 +8,8 @@ N^(1 + 1/b) for seconds, an iteration costing ~N).
 
     python tools/scaling_fit.py SWEEP.jsonl [...] [--n-min 2000] [--n-max 100000] [--png out.png]
 
-Runs that did not certify count in the "certified" column, not in the medians.
+Runs that did not certify count in the "certified" column and, in the medians, as slower than
+every certified run (a censored sample): a median that falls on one is not given.
 """
 
 import argparse
@@ -28,18 +29,31 @@ def read(paths):
     return rows
 
 
+def censored_median(values):
+    """The median of a sample in which None stands for a run that did not certify (its
+    iterations or seconds unknown, but above every certified one's): None when the median falls
+    on such a run (half or more did not certify)."""
+    xs = sorted(math.inf if v is None else v for v in values)
+    if not xs:
+        return None
+    med = statistics.median(xs)
+    return None if math.isinf(med) or math.isnan(med) else med
+
+
 def medians(rows):
-    """{dim: [(n, certified, runs, median iterations, median seconds)]}, N ascending; the
-    medians are None when no run of that N certified."""
+    """{dim: [(n, certified, runs, median iterations, median seconds)]}, N ascending. A run that
+    did not certify counts as slower than every certified one (a censored sample), so that a
+    failing seed moves the median up instead of dropping out; the medians are None when half
+    or more of the runs of that N did not certify."""
     groups = defaultdict(list)
     for r in rows:
         groups[(int(r["dim"]), int(r["n"]))].append(r)
     out = defaultdict(list)
     for (dim, n), rs in sorted(groups.items()):
-        ok = [r for r in rs if r.get("converged")]
-        its = statistics.median(r["iterations"] for r in ok) if ok else None
-        secs = statistics.median(r["seconds"] for r in ok) if ok else None
-        out[dim].append((n, len(ok), len(rs), its, secs))
+        ok = [bool(r.get("converged")) for r in rs]
+        its = censored_median(r["iterations"] if c else None for r, c in zip(rs, ok))
+        secs = censored_median(r["seconds"] if c else None for r, c in zip(rs, ok))
+        out[dim].append((n, sum(ok), len(rs), its, secs))
     return dict(out)
 
 
@@ -92,6 +106,11 @@ def plot(rows, table, path):
             c = colours.get(dim, "k")
             ok = [r for r in rows if int(r["dim"]) == dim and r.get("converged")]
             ax.scatter([r["n"] for r in ok], [r[key] for r in ok], s=10, color=c, alpha=0.35)
+            failed = [r for r in rows if int(r["dim"]) == dim and not r.get("converged")
+                      and r.get(key) is not None]
+            if failed:  # where they stopped: a lower bound
+                ax.scatter([r["n"] for r in failed], [r[key] for r in failed], s=30, color=c,
+                           marker="x", label=f"{dim}D not certified (at its bound)")
             med = [(e[0], e[col]) for e in entries if e[col] is not None]
             if med:
                 ax.plot([m[0] for m in med], [m[1] for m in med], "-o", color=c, label=f"{dim}D median")
