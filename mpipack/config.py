@@ -31,9 +31,11 @@ FIXED_FALLBACK = {"alpha": 7.8e-3, "beta": 2.8e3, "c": 2.0}
 PAPER_GAMMA = 1.6e-2  # with the fallback alpha and beta
 # stop.max_iter "auto": MAX_ITER_BASE up to N = MAX_ITER_N, then growing like the cluster's
 # diameter in sphere diameters, N^(1/b) (the iterations per unit of the trap's time at a step
-# bounded by the stiffest contact): 3D N = 1e5 certified in 90000 iterations and 2D N = 32000
-# in up to 70900 (docs/convergence.md, sections 3h and 3j), both near a fixed bound of 100000
-MAX_ITER_BASE, MAX_ITER_N = 100000, 32000
+# bounded by the stiffest contact). The bound is a safeguard, not a criterion: about twice the
+# slowest certified run seen at the largest sizes measured (2D N = 32000: 109500 iterations, seed
+# 4, under a bound of 200000; 2D N = 8000 at most 7150, 3D N = 1e5 16950; docs/convergence.md,
+# sections 3j and 3r). From N = 32000 (section 3j) it left that 2D run uncertified at 100000.
+MAX_ITER_BASE, MAX_ITER_N = 100000, 8000
 
 
 def auto_max_iter(n, dim):

@@ -137,17 +137,17 @@ def test_bad_scene_source(tmp_path):
 
 def test_iteration_bound_grows_with_n(tmp_path):
     """stop.max_iter "auto" (the default scene's and any scene that leaves the key out): 100000
-    up to N = 32000, then x (N / 32000)^(1/b); a number given is kept, paper scenes keep theirs."""
+    up to N = 8000, then x (N / 8000)^(1/b); a number given is kept, paper scenes keep theirs."""
     bound = {(n, dim): config.load("default", [f"n={n}", f"dim={dim}"]).stop.max_iter
-             for n, dim in [(2, 2), (32000, 2), (100000, 2), (100000, 3), (1000000, 2)]}
-    assert bound == {(2, 2): 100000, (32000, 2): 100000, (100000, 2): 177000, (100000, 3): 146000,
-                     (1000000, 2): 559000}
+             for n, dim in [(2, 2), (8000, 2), (32000, 2), (100000, 2), (100000, 3), (1000000, 2)]}
+    assert bound == {(2, 2): 100000, (8000, 2): 100000, (32000, 2): 200000, (100000, 2): 354000,
+                     (100000, 3): 232000, (1000000, 2): 1118000}
     assert config.load("default", ["n=100000", "stop.max_iter=5"]).stop.max_iter == 5
     assert config.load("default", ["stop.max_iter=\"auto\""]).stop.max_iter == 100000
     assert config.load("paper-3d", ["n=100000"]).stop.max_iter == 10000
     f = tmp_path / "s.toml"
     f.write_text("n = 256000\ndim = 3\n")
-    assert config.load(str(f), []).stop.max_iter == 200000
+    assert config.load(str(f), []).stop.max_iter == 317000
 
 
 def test_starts_that_scale():
