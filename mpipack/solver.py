@@ -17,9 +17,9 @@ Under the fire-al schedule (``method.schedule``, the default of DAHA scenes that
 parameters) the step kernel is ``kernels_fire``'s, and ``schedule.FireAL`` sets its
 coefficients before every pass from the previous iteration's reduced figures (``docs/
 convergence.md``); the loop is the same. Once its penalty is stiff (``schedule.QN_FROM_CB``)
-an iteration is an L-BFGS step (``_qn_advance``): the same kernel as a gradient pass, the memory's dots
-(``kernels_qn``) in the same ONE allreduce, the direction from the Gram matrix (``qn``), then
-the per-sphere step before the ghosts are refreshed.
+an iteration is an L-BFGS step (``_qn_advance``): the same kernel as a gradient pass, the
+memory's dots (``kernels_qn``) in the same ONE allreduce, the direction from the Gram matrix
+(``qn``), then the per-sphere step before the ghosts are refreshed.
 
 NAP and NAV run the same step/reduce/forward cycle for each inner iteration, with the
 constraints linearised about the outer iterate X^p (``nested.outer_step``). End-of-run
