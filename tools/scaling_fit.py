@@ -2,9 +2,9 @@
 `tools/convergence_sweep.py --json FILE` (any number of files, any dimensions), takes per (dim,
 N) the median (runs that did not certify counting as the slowest), fits log(median) = a + k
 log N by least squares over a range of N, prints the exponent k beside the target 1/b (the
-cluster's diameter in sphere diameters grows like N^(1/b)), and draws iterations and seconds against N (log-log, one colour
-per dimension, every run as a dot, medians joined; dotted: the slope N^(1/b) for iterations and
-N^(1 + 1/b) for seconds, an iteration costing ~N).
+cluster's diameter in sphere diameters grows like N^(1/b)), and draws iterations and seconds
+against N (log-log, one colour per dimension, every run as a dot, medians joined; dotted: the
+slope N^(1/b) for iterations and N^(1 + 1/b) for seconds, an iteration costing ~N).
 
     python tools/scaling_fit.py SWEEP.jsonl [...] [--n-min 2000] [--n-max 100000] [--png out.png]
 
