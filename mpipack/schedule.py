@@ -61,7 +61,7 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
    leapfrog bound dt^2 lambda_max < 4 with Gershgorin's k_rel >= lambda_max (a margin of 2 on dt,
    as before, cost 3 - 8 times more iterations at N = 8000: docs/convergence.md, section 3d).
 
-3. L-BFGS on the stiff penalty (QN_AT_CAP): from the multiplier step at which c_b reaches
+3. L-BFGS on the stiff penalty: from the multiplier step at which c_b reaches
    QN_FROM_CB (the cap, 1024, in 1D and 3D; 256 in 2D), the inner solves are L-BFGS's (``qn``:
    memory m pairs, the two-loop recursion on the Gram matrix of exact sums, one reduction per
    iteration; ``kernels_qn``) instead of FIRE's. In the stiff phase FIRE's step is bounded by
@@ -130,7 +130,6 @@ CB_GROW = {1: 2.0, 2: 2.0, 3: 8.0}
 # after every multiplier step and the quasi-Newton steps carry it away (3D from 128: 3D N = 8000
 # seed 3 not certified); a 2D packing holds from 256 (2D N = 32000 seeds 0 - 4 and the mixed
 # sizes sooner in sum than from the cap; docs/convergence.md, section 3r)
-QN_AT_CAP = True
 QN_FROM_CB = {1: CB_MAX, 2: 256.0, 3: CB_MAX}
 # ... whose multiplier step is forced after QN_MAX_INNER iterations while the max overlap is
 # above the stop's tolerance (the inner solve converges, but only a multiplier step brings the
@@ -252,7 +251,7 @@ class FireAL:
             s["eta"] = max(ETA_MIN, s["eta"] * ETA_F)
             if s["qn"]:
                 self.lbfgs.reset()  # the multipliers change L_rho: the memory is of another function
-            elif QN_AT_CAP and s["cb"] >= QN_FROM_CB[self.dim]:
+            elif s["cb"] >= QN_FROM_CB[self.dim]:
                 # from the next inner solve on, L-BFGS; its first step a gradient step at the
                 # stiffest row's scale (k_rel bounds Hess L_rho's largest eigenvalue)
                 s["qn"] = True

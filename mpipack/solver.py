@@ -136,15 +136,7 @@ class Solver:
         self.timers = timers or PhaseTimers()
         self.clock0 = time.perf_counter()  # the loop's wall clock origin (set by run)
         self.run_state = dict  # the loop's own state for a checkpoint (set by run)
-        # the per-iteration reduction: the step kernel's block, the load, the loop's clock
-        self.red = Reduction()
-        self.red.add_exact("step", self._step_sums())
-        self.red.add_max("step", self._step_maxima())
-        self.red.add_count("active")
-        self.red.add_max("load", [("max_local", 1)], fill=lambda: self.state.n_local)
-        self.red.add_max("wall", [("wall", 1)], fill=lambda: time.perf_counter() - self.clock0)
-        # a stop asked for by a signal on any rank (``request_stop``): all ranks see it together
-        self.red.add_max("stop_request", [("stop_request", 1)], fill=lambda: _STOP_REQUEST[0])
+        self.red = self._loop_reduction()
         self._disp_bound = 0.0  # upper bound of the displacement since the rows were built
         self._qn_cap_pending = 0.0  # an L-BFGS step's assumed move in the bound, until reduced
         self._red_qn = None
@@ -162,6 +154,19 @@ class Solver:
                 f"arrays alone, more than the {budget / 2**30:.3g} GiB available per rank; use more "
                 f"ranks or nodes, or fewer spheres (limit: neighbor.max_pair_gib)")
         self.r_diverge = math.inf  # radius of gyration beyond which the run diverges (initialise)
+
+    def _loop_reduction(self):
+        """The per-iteration reduction: the step kernel's blocks, the active pairs, the load,
+        the loop's clock and a stop asked for by a signal on any rank (``request_stop``: all
+        ranks see it together). An L-BFGS iteration adds its own blocks (``_qn_reduction``)."""
+        red = Reduction()
+        red.add_exact("step", self._step_sums())
+        red.add_max("step", self._step_maxima())
+        red.add_count("active")
+        red.add_max("load", [("max_local", 1)], fill=lambda: self.state.n_local)
+        red.add_max("wall", [("wall", 1)], fill=lambda: time.perf_counter() - self.clock0)
+        red.add_max("stop_request", [("stop_request", 1)], fill=lambda: _STOP_REQUEST[0])
+        return red
 
     def _step_sums(self):
         """Exact fields the step kernel fills (in its row order)."""
@@ -388,22 +393,16 @@ class Solver:
         fig["stop_request"] = red.max("stop_request") > 0
 
     def _qn_reduction(self):
-        """The reduction of an L-BFGS iteration: the step kernel's blocks as in ``_advance``,
-        and the memory's (``kernels_qn.dots``): the new gradient's dots with the 2m + 1 slots
-        and itself, the centre of mass of X^n, and the last step's |s|^2, max |s_i|^2 and
-        shortened steps."""
+        """The reduction of an L-BFGS iteration: the loop's blocks (``_loop_reduction``) and the
+        memory's (``kernels_qn.dots``): the new gradient's dots with the 2m + 1 slots and
+        itself, the centre of mass of X^n, and the last step's |s|^2, max |s_i|^2 and shortened
+        steps."""
         if self._red_qn is None:
             k = qn.slots(self.schedule.lbfgs.m)
-            red = Reduction()
-            red.add_exact("step", self._step_sums())
-            red.add_max("step", self._step_maxima())
+            red = self._loop_reduction()
             red.add_exact("qn", [("qn_dots", k + 1), ("qn_x", self.dim), ("qn_move2", 1)])
             red.add_max("qn", [("qn_step2", 1)])
-            red.add_count("active")
             red.add_count("qn_clipped")
-            red.add_max("load", [("max_local", 1)], fill=lambda: self.state.n_local)
-            red.add_max("wall", [("wall", 1)], fill=lambda: time.perf_counter() - self.clock0)
-            red.add_max("stop_request", [("stop_request", 1)], fill=lambda: _STOP_REQUEST[0])
             self._red_qn = red
         return self._red_qn
 
