@@ -6,7 +6,9 @@ over (max overlap first below 0.1 d), W/N^2, and the certificate's figures.
     python tools/convergence_sweep.py --n 500,2000,8000 --seeds 0-4 [--dim 3] [--ranks 2]
         [--max-iter 40000] [--set key=value ...] [--json out.jsonl]
 
-Each run is a real command-line run in its own temporary folder; exit codes are reported.
+Each run is a real command-line run in its own temporary folder; exit codes are reported. A
+run stops itself before --timeout (``stop.max_seconds``, unless --set gives one) and reports
+its figures with exit 4; one that does not is killed and reported as "timeout".
 """
 
 import argparse
@@ -30,6 +32,12 @@ def seeds_of(text):
     return out
 
 
+def loop_seconds(timeout):
+    """The run's own time limit (stop.max_seconds) under the sweep's timeout: a tenth of it, at
+    least 5 s and at most 120 s, left for start-up, the certificate and the summary."""
+    return max(1.0, timeout - min(max(0.1 * timeout, 5.0), 120.0))
+
+
 def run_one(n, seed, args):
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [sys.executable, "-m", "mpipack.cli", "run", "--seed", str(seed), "--set", f"n={n}",
@@ -37,16 +45,26 @@ def run_one(n, seed, args):
                "--out", tmp, "--quiet", "--set", "output.snapshots=false"]
         for s in args.set:
             cmd += ["--set", s]
+        if not any(x.startswith("stop.max_seconds=") for x in args.set):
+            # the run stops itself before the timeout, with its summary and figures (exit 4),
+            # instead of being killed with nothing to show
+            cmd += ["--set", f"stop.max_seconds={loop_seconds(args.timeout):g}"]
         if args.ranks > 1:
             cmd = ["mpirun", "--oversubscribe", "-n", str(args.ranks)] + cmd
         t0 = time.perf_counter()
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
+        try:
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
+            returncode, stderr = proc.returncode, proc.stderr
+        except subprocess.TimeoutExpired as e:  # the safety net: a run that did not stop itself
+            returncode = "timeout"
+            stderr = (e.stderr.decode() if isinstance(e.stderr, bytes) else (e.stderr or ""))
+            stderr += f"\nkilled after the sweep's timeout of {args.timeout:g} s"
         wall = time.perf_counter() - t0
         path = os.path.join(tmp, "summary.json")
         s = json.load(open(path)) if os.path.exists(path) else {}
     cert = s.get("certificate", {})
     sched = s.get("schedule") or {}
-    return {"n": n, "dim": args.dim, "seed": seed, "ranks": args.ranks, "exit": proc.returncode,
+    return {"n": n, "dim": args.dim, "seed": seed, "ranks": args.ranks, "exit": returncode,
             "converged": s.get("converged"), "stop_reason": s.get("stop_reason"),
             "iterations": s.get("iterations"),
             "seconds": round(s.get("wall_seconds", wall), 2),
@@ -63,7 +81,7 @@ def run_one(n, seed, args):
             "kkt_run": cert.get("kkt", {}).get("run_value"),
             "force_imbalance": s.get("force_imbalance"),  # the KKT residual over the contact forces
             "w_change": cert.get("settled", {}).get("value"),
-            "stderr": proc.stderr.strip().splitlines()[-1:] if proc.returncode not in (0, 4) else []}
+            "stderr": stderr.strip().splitlines()[-1:] if returncode not in (0, 4) else []}
 
 
 def fmt(v, spec):
