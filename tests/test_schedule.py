@@ -108,3 +108,31 @@ def test_the_inner_solves_turn_to_lbfgs_once_the_penalty_is_stiff(dim):
     sch.coefficients()
     sch.observe(figure(sch, it, 0.01))
     assert sch.quasi_newton_pass()
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_lbfgs_phase_damps_its_multiplier_steps(dim):
+    """In the L-BFGS phase a multiplier step is lambda <- max(0, lambda + QN_DUAL_STEP rho phi):
+    its pass moves nothing (a3 = a4 = 0) and its dual gain is QN_DUAL_STEP c_b (half of it in
+    2D, all of it in 3D); FIRE's phase keeps the full step (gain c_b)."""
+    sch = fire_schedule(dim=dim)
+    it = 2
+    while not sch.s["qn"]:
+        step = run_until_step(sch, it, 0.01, schedule.FIRST_INNER + sch.fall_iterations + 10)
+        assert step is not None
+        if not sch.s["qn"]:  # a multiplier step of FIRE's phase: the full step
+            a4, beta = sch.coefficients()[3:5]
+            assert (a4, beta) == (0.0, sch.s["cb"])  # the penalty off, lambda + c_b w phi
+            sch.observe(figure(sch, step + 1, 0.01))
+        it = step + 2 if not sch.s["qn"] else step + 1
+    damp = {2: 0.5, 3: 1.0}[dim]
+    assert schedule.QN_DUAL_STEP[dim] == damp
+    cb = sch.s["cb"]
+    a1, a2, a3, a4, beta = sch.coefficients()[:5]  # the multiplier step that turned L-BFGS on
+    assert (a3, a4, beta) == (0.0, 0.0, damp * cb)
+    sch.observe(figure(sch, it, 0.01))
+    it += 1
+    step = run_until_step(sch, it, 0.01, schedule.QN_MAX_INNER + 10)  # forced: overlap above tolerance
+    assert step is not None and step - it <= schedule.QN_MAX_INNER
+    a1, a2, a3, a4, beta = sch.coefficients()[:5]
+    assert (a3, a4, beta) == (0.0, 0.0, damp * sch.s["cb"])
