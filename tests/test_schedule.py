@@ -37,6 +37,22 @@ def run_until_step(sch, first, max_overlap, limit, residual=0.5):
     return None
 
 
+def walk_to_lbfgs(sch, at_fire_step=None):
+    """Forced multiplier steps (overlap 0.01) until the inner solves turn to L-BFGS. Returns
+    (the iteration of the step that turned it on, the iteration after it, c_b after each step).
+    ``at_fire_step(step)``, called after each step of FIRE's phase, may look at that step's
+    pass and returns the iteration to go on from."""
+    it, seen = 2, []
+    while not sch.s["qn"]:
+        step = run_until_step(sch, it, 0.01, schedule.FIRST_INNER + sch.fall_iterations + 10)
+        assert step is not None and len(seen) < 12
+        seen.append(sch.s["cb"])
+        it = step + 1
+        if at_fire_step is not None and not sch.s["qn"]:
+            it = at_fire_step(step)
+    return step, it, seen
+
+
 def test_the_first_forced_step_waits_for_the_fall_and_the_soft_phase():
     sch = fire_schedule()
     wait = schedule.FIRST_INNER + sch.fall_iterations
@@ -95,12 +111,7 @@ def test_the_inner_solves_turn_to_lbfgs_once_the_penalty_is_stiff(dim):
     holds under it), the cap 1024 in 3D (a softer glass rearranges after every step)."""
     sch = fire_schedule(dim=dim)
     assert schedule.QN_FROM_CB[dim] == {2: 256.0, 3: 1024.0}[dim]
-    it, seen = 2, []
-    while not sch.s["qn"]:
-        step = run_until_step(sch, it, 0.01, schedule.FIRST_INNER + sch.fall_iterations + 10)
-        assert step is not None and len(seen) < 12
-        seen.append(sch.s["cb"])
-        it = step + 1
+    step, it, seen = walk_to_lbfgs(sch)
     assert sch.s["cb"] == schedule.QN_FROM_CB[dim], seen
     assert all(cb < schedule.QN_FROM_CB[dim] for cb in seen[:-1]), seen
     assert sch.s["qn_from"] == step + 1
@@ -116,15 +127,14 @@ def test_the_lbfgs_phase_damps_its_multiplier_steps(dim):
     its pass moves nothing (a3 = a4 = 0) and its dual gain is QN_DUAL_STEP c_b (half of it in
     2D, all of it in 3D); FIRE's phase keeps the full step (gain c_b)."""
     sch = fire_schedule(dim=dim)
-    it = 2
-    while not sch.s["qn"]:
-        step = run_until_step(sch, it, 0.01, schedule.FIRST_INNER + sch.fall_iterations + 10)
-        assert step is not None
-        if not sch.s["qn"]:  # a multiplier step of FIRE's phase: the full step
-            a4, beta = sch.coefficients()[3:5]
-            assert (a4, beta) == (0.0, sch.s["cb"])  # the penalty off, lambda + c_b w phi
-            sch.observe(figure(sch, step + 1, 0.01))
-        it = step + 2 if not sch.s["qn"] else step + 1
+
+    def full_step(step):  # a multiplier step of FIRE's phase: the full step
+        a4, beta = sch.coefficients()[3:5]
+        assert (a4, beta) == (0.0, sch.s["cb"])  # the penalty off, lambda + c_b w phi
+        sch.observe(figure(sch, step + 1, 0.01))
+        return step + 2
+
+    _, it, _ = walk_to_lbfgs(sch, at_fire_step=full_step)
     damp = {2: 0.5, 3: 1.0}[dim]
     assert schedule.QN_DUAL_STEP[dim] == damp
     cb = sch.s["cb"]
