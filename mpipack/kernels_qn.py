@@ -13,6 +13,12 @@ a3 = 1, a4 = c_b, no speed cap), which writes X^n - g into x_new; it is read the
                X^{n+1} = X^n + step
     backtrack  a failed step s: S_{s_slot} = s/2, X^{n+1} = X^n - s/2 (half way from the
                previous X, whose gradient G_OLD keeps)
+
+Each is written once for a compile-time dimension (``_dots(dim, ...)`` inlined into one small
+wrapper per dimension, as in ``kernels``): a sphere's g and step then live in registers. The
+first version looped over a runtime ``range(dim)`` through small temporary arrays, and its
+direction pass cost 8 times as much (6.1 ms against 0.77 ms for 50000 spheres, m = 5, 2D); the
+arithmetic and its order are the same, so are the bits.
 """
 
 import numpy as np
@@ -24,34 +30,44 @@ from . import exactsum
 _AT_CAP = 1.0 - 1e-9
 
 
-@njit(cache=True, error_model="numpy")
-def dots(x, x_new, n_local, qn, head, cap, acc, maxima):
-    """acc rows: g.slot_j (j = 0 .. K-1), g.g, sum X^n (b rows), sum |S_head|^2; maxima[0]:
-    max |S_head,i|^2 (head < 0: no last step, zeros). g_i = x_i - x_new_i. Returns the number
-    of local spheres whose last step is at the cap."""
+@njit(cache=True, inline="always")
+def _dots(dim, x, x_new, n_local, qn, head, cap, acc, maxima):
     fbuf = exactsum.staging(acc)
     k_slots = qn.shape[1]
-    dim = x.shape[1]
     max2 = 0.0
     at_cap = 0
-    g = np.empty(3)
     for i in range(n_local):
+        # g_i = X^n_i - (X^n_i - g_i), as the gradient pass left it
+        g0 = x[i, 0] - x_new[i, 0]
+        g1 = x[i, 1] - x_new[i, 1] if dim > 1 else 0.0
+        g2 = x[i, 2] - x_new[i, 2] if dim > 2 else 0.0
         gg = 0.0
-        for c in range(dim):
-            g[c] = x[i, c] - x_new[i, c]
-            gg += g[c] * g[c]
+        gg += g0 * g0
+        if dim > 1:
+            gg += g1 * g1
+        if dim > 2:
+            gg += g2 * g2
         for j in range(k_slots):
             v = 0.0
-            for c in range(dim):
-                v += g[c] * qn[i, j, c]
+            v += g0 * qn[i, j, 0]
+            if dim > 1:
+                v += g1 * qn[i, j, 1]
+            if dim > 2:
+                v += g2 * qn[i, j, 2]
             exactsum.add(fbuf, acc, j, v)
         exactsum.add(fbuf, acc, k_slots, gg)
-        for c in range(dim):
-            exactsum.add(fbuf, acc, k_slots + 1 + c, x[i, c])
+        exactsum.add(fbuf, acc, k_slots + 1, x[i, 0])
+        if dim > 1:
+            exactsum.add(fbuf, acc, k_slots + 2, x[i, 1])
+        if dim > 2:
+            exactsum.add(fbuf, acc, k_slots + 3, x[i, 2])
         if head >= 0:
             s2 = 0.0
-            for c in range(dim):
-                s2 += qn[i, head, c] * qn[i, head, c]
+            s2 += qn[i, head, 0] * qn[i, head, 0]
+            if dim > 1:
+                s2 += qn[i, head, 1] * qn[i, head, 1]
+            if dim > 2:
+                s2 += qn[i, head, 2] * qn[i, head, 2]
             exactsum.add(fbuf, acc, k_slots + 1 + dim, s2)
             if s2 > max2 or s2 != s2:
                 max2 = s2
@@ -62,14 +78,11 @@ def dots(x, x_new, n_local, qn, head, cap, acc, maxima):
     return at_cap
 
 
-@njit(cache=True, error_model="numpy")
-def direction(x, x_new, n_local, qn, coef, y_slot, s_slot, cap):
-    """X^{n+1} = X^n + sum_j coef_j basis_j over [S, Y, g] (each sphere's move at most
-    ``cap``) into x_new, which holds X^n - g on entry; updates the slots (module docstring)."""
+@njit(cache=True, inline="always")
+def _direction(dim, x, x_new, n_local, qn, coef, y_slot, s_slot, cap):
     k_slots = qn.shape[1]
     g_old = k_slots - 1
     m = (k_slots - 1) // 2
-    dim = x.shape[1]
     used = np.empty(k_slots, dtype=np.int64)  # the memory slots with a nonzero coefficient
     n_used = 0
     for j in range(k_slots - 1):
@@ -77,39 +90,135 @@ def direction(x, x_new, n_local, qn, coef, y_slot, s_slot, cap):
             used[n_used] = j
             n_used += 1
     cg = coef[k_slots - 1]  # the gradient's
-    g = np.zeros(3)
-    p = np.zeros(3)
     for i in range(n_local):
-        for c in range(dim):
-            g[c] = x[i, c] - x_new[i, c]
-            if y_slot >= 0:
-                qn[i, m + y_slot, c] = g[c] - qn[i, g_old, c]
-            p[c] = cg * g[c]
+        g0 = x[i, 0] - x_new[i, 0]
+        g1 = x[i, 1] - x_new[i, 1] if dim > 1 else 0.0
+        g2 = x[i, 2] - x_new[i, 2] if dim > 2 else 0.0
+        if y_slot >= 0:
+            qn[i, m + y_slot, 0] = g0 - qn[i, g_old, 0]
+            if dim > 1:
+                qn[i, m + y_slot, 1] = g1 - qn[i, g_old, 1]
+            if dim > 2:
+                qn[i, m + y_slot, 2] = g2 - qn[i, g_old, 2]
+        p0 = cg * g0
+        p1 = cg * g1
+        p2 = cg * g2
         for u in range(n_used):
             j = used[u]
             w = coef[j]
-            for c in range(dim):
-                p[c] += w * qn[i, j, c]
+            p0 += w * qn[i, j, 0]
+            if dim > 1:
+                p1 += w * qn[i, j, 1]
+            if dim > 2:
+                p2 += w * qn[i, j, 2]
         s2 = 0.0
-        for c in range(dim):
-            s2 += p[c] * p[c]
+        s2 += p0 * p0
+        if dim > 1:
+            s2 += p1 * p1
+        if dim > 2:
+            s2 += p2 * p2
         if s2 > cap * cap:
             scale = cap / np.sqrt(s2)
-            for c in range(dim):
-                p[c] *= scale
-        for c in range(dim):
-            qn[i, s_slot, c] = p[c]
-            qn[i, g_old, c] = g[c]
-            x_new[i, c] = x[i, c] + p[c]
+            p0 *= scale
+            p1 *= scale
+            p2 *= scale
+        qn[i, s_slot, 0] = p0
+        qn[i, g_old, 0] = g0
+        x_new[i, 0] = x[i, 0] + p0
+        if dim > 1:
+            qn[i, s_slot, 1] = p1
+            qn[i, g_old, 1] = g1
+            x_new[i, 1] = x[i, 1] + p1
+        if dim > 2:
+            qn[i, s_slot, 2] = p2
+            qn[i, g_old, 2] = g2
+            x_new[i, 2] = x[i, 2] + p2
+
+
+@njit(cache=True, inline="always")
+def _backtrack(dim, x, x_new, n_local, qn, s_slot):
+    for i in range(n_local):
+        half = 0.5 * qn[i, s_slot, 0]
+        qn[i, s_slot, 0] = half
+        x_new[i, 0] = x[i, 0] - half
+        if dim > 1:
+            half = 0.5 * qn[i, s_slot, 1]
+            qn[i, s_slot, 1] = half
+            x_new[i, 1] = x[i, 1] - half
+        if dim > 2:
+            half = 0.5 * qn[i, s_slot, 2]
+            qn[i, s_slot, 2] = half
+            x_new[i, 2] = x[i, 2] - half
+
+
+# One small wrapper per dimension, so that only what a scene uses is compiled (and cached);
+# written out because numba caches top-level functions only.
+@njit(cache=True, error_model="numpy")
+def _dots1(x, x_new, n_local, qn, head, cap, acc, maxima):
+    return _dots(1, x, x_new, n_local, qn, head, cap, acc, maxima)
 
 
 @njit(cache=True, error_model="numpy")
+def _dots2(x, x_new, n_local, qn, head, cap, acc, maxima):
+    return _dots(2, x, x_new, n_local, qn, head, cap, acc, maxima)
+
+
+@njit(cache=True, error_model="numpy")
+def _dots3(x, x_new, n_local, qn, head, cap, acc, maxima):
+    return _dots(3, x, x_new, n_local, qn, head, cap, acc, maxima)
+
+
+@njit(cache=True, error_model="numpy")
+def _direction1(x, x_new, n_local, qn, coef, y_slot, s_slot, cap):
+    _direction(1, x, x_new, n_local, qn, coef, y_slot, s_slot, cap)
+
+
+@njit(cache=True, error_model="numpy")
+def _direction2(x, x_new, n_local, qn, coef, y_slot, s_slot, cap):
+    _direction(2, x, x_new, n_local, qn, coef, y_slot, s_slot, cap)
+
+
+@njit(cache=True, error_model="numpy")
+def _direction3(x, x_new, n_local, qn, coef, y_slot, s_slot, cap):
+    _direction(3, x, x_new, n_local, qn, coef, y_slot, s_slot, cap)
+
+
+@njit(cache=True, error_model="numpy")
+def _backtrack1(x, x_new, n_local, qn, s_slot):
+    _backtrack(1, x, x_new, n_local, qn, s_slot)
+
+
+@njit(cache=True, error_model="numpy")
+def _backtrack2(x, x_new, n_local, qn, s_slot):
+    _backtrack(2, x, x_new, n_local, qn, s_slot)
+
+
+@njit(cache=True, error_model="numpy")
+def _backtrack3(x, x_new, n_local, qn, s_slot):
+    _backtrack(3, x, x_new, n_local, qn, s_slot)
+
+
+_DOTS = {1: _dots1, 2: _dots2, 3: _dots3}
+_DIRECTION = {1: _direction1, 2: _direction2, 3: _direction3}
+_BACKTRACK = {1: _backtrack1, 2: _backtrack2, 3: _backtrack3}
+
+
+def dots(x, x_new, n_local, qn, head, cap, acc, maxima):
+    """acc rows: g.slot_j (j = 0 .. K-1), g.g, sum X^n (b rows), sum |S_head|^2; maxima[0]:
+    max |S_head,i|^2 (head < 0: no last step, zeros). g_i = x_i - x_new_i. Returns the number
+    of local spheres whose last step is at the cap. Shapes: x, x_new (n_total, b); qn
+    (n_local, K, b); acc int64 (K + 1 + b + 1, exactsum.NBINS + 1), added to."""
+    return _DOTS[x.shape[1]](x, x_new, n_local, qn, head, cap, acc, maxima)
+
+
+def direction(x, x_new, n_local, qn, coef, y_slot, s_slot, cap):
+    """X^{n+1} = X^n + sum_j coef_j basis_j over [S, Y, g] (each sphere's move at most
+    ``cap``) into x_new, which holds X^n - g on entry; updates the slots (module docstring).
+    coef (K,): the basis's coefficients, the gradient's last."""
+    _DIRECTION[x.shape[1]](x, x_new, n_local, qn, coef, y_slot, s_slot, cap)
+
+
 def backtrack(x, x_new, n_local, qn, s_slot):
     """The last step s (slot s_slot) failed: S_{s_slot} = s/2 and X^{n+1} = X^n - s/2, the
     point half way along it from the same X; G_OLD stays that X's gradient."""
-    dim = x.shape[1]
-    for i in range(n_local):
-        for c in range(dim):
-            half = 0.5 * qn[i, s_slot, c]
-            qn[i, s_slot, c] = half
-            x_new[i, c] = x[i, c] - half
+    _BACKTRACK[x.shape[1]](x, x_new, n_local, qn, s_slot)
