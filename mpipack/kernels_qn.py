@@ -18,7 +18,9 @@ Each is written once for a compile-time dimension (``_dots(dim, ...)`` inlined i
 wrapper per dimension, as in ``kernels``): a sphere's g and step then live in registers. The
 first version looped over a runtime ``range(dim)`` through small temporary arrays, and its
 direction pass cost 8 times as much (6.1 ms against 0.77 ms for 50000 spheres, m = 5, 2D); the
-arithmetic and its order are the same, so are the bits.
+arithmetic and its order are the same, so are the bits. ``dots`` adds its 2m + 4 + b values
+per sphere to the exact sums as one row of lanes (``exactsum.add_lanes``, vectorised): 2.5 ms
+-> ~1.5 ms in 2D at 50000 spheres, the same accumulator bit for bit.
 """
 
 import numpy as np
@@ -32,8 +34,11 @@ _AT_CAP = 1.0 - 1e-9
 
 @njit(cache=True, inline="always")
 def _dots(dim, x, x_new, n_local, qn, head, cap, acc, maxima):
-    fbuf = exactsum.staging(acc)
     k_slots = qn.shape[1]
+    # one value per accumulator row and sphere, added as lanes (``exactsum.add_lanes``): the
+    # 2m + 4 + b exact sums per sphere are most of this pass's time
+    fl = exactsum.lanes(acc)
+    v = np.zeros(acc.shape[0])
     max2 = 0.0
     at_cap = 0
     for i in range(n_local):
@@ -48,32 +53,33 @@ def _dots(dim, x, x_new, n_local, qn, head, cap, acc, maxima):
         if dim > 2:
             gg += g2 * g2
         for j in range(k_slots):
-            v = 0.0
-            v += g0 * qn[i, j, 0]
+            s = 0.0
+            s += g0 * qn[i, j, 0]
             if dim > 1:
-                v += g1 * qn[i, j, 1]
+                s += g1 * qn[i, j, 1]
             if dim > 2:
-                v += g2 * qn[i, j, 2]
-            exactsum.add(fbuf, acc, j, v)
-        exactsum.add(fbuf, acc, k_slots, gg)
-        exactsum.add(fbuf, acc, k_slots + 1, x[i, 0])
+                s += g2 * qn[i, j, 2]
+            v[j] = s
+        v[k_slots] = gg
+        v[k_slots + 1] = x[i, 0]
         if dim > 1:
-            exactsum.add(fbuf, acc, k_slots + 2, x[i, 1])
+            v[k_slots + 2] = x[i, 1]
         if dim > 2:
-            exactsum.add(fbuf, acc, k_slots + 3, x[i, 2])
-        if head >= 0:
+            v[k_slots + 3] = x[i, 2]
+        if head >= 0:  # else the row of |S_head|^2 gets zeros
             s2 = 0.0
             s2 += qn[i, head, 0] * qn[i, head, 0]
             if dim > 1:
                 s2 += qn[i, head, 1] * qn[i, head, 1]
             if dim > 2:
                 s2 += qn[i, head, 2] * qn[i, head, 2]
-            exactsum.add(fbuf, acc, k_slots + 1 + dim, s2)
+            v[k_slots + 1 + dim] = s2
             if s2 > max2 or s2 != s2:
                 max2 = s2
             if s2 >= _AT_CAP * cap * cap:
                 at_cap += 1
-    exactsum.flush(fbuf, acc)
+        exactsum.add_lanes(fl, acc, v)
+    exactsum.flush_lanes(fl, acc)
     maxima[0] = max2
     return at_cap
 

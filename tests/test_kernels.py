@@ -300,6 +300,52 @@ def test_exact_sum_partial_accumulators_combine_exactly():
         assert exactsum.value(total, 0) == whole
 
 
+def test_exact_sum_lanes_match_per_value_adds():
+    """``add_lanes`` (one value per quantity at a time, vectorised) leaves the same accumulator,
+    bit for bit, as per-value ``add`` calls: over more than FLUSH_EVERY calls, with values of
+    every magnitude, zeros, and out-of-range values and NaN in some quantities only."""
+    from numba import njit
+
+    @njit
+    def by_value(vals, acc):
+        fbuf = exactsum.staging(acc)
+        for i in range(vals.shape[0]):
+            for q in range(vals.shape[1]):
+                exactsum.add(fbuf, acc, q, vals[i, q])
+        exactsum.flush(fbuf, acc)
+
+    @njit
+    def by_lanes(vals, acc):
+        fl = exactsum.lanes(acc)
+        for i in range(vals.shape[0]):
+            exactsum.add_lanes(fl, acc, vals[i])
+        exactsum.flush_lanes(fl, acc)
+
+    rng = np.random.default_rng(23)
+    n, k = 3 * exactsum.FLUSH_EVERY + 17, 15
+    vals = mixed_values(rng, n * k).reshape(n, k)
+    vals[:, 4] = 0.0
+    vals[::7, 5] = -0.0
+    vals[100, 6] = np.nan
+    vals[200, 7] = 2.0 * exactsum.RANGE
+    vals[300, 8] = -np.inf
+    a, b = exactsum.new_accumulator(k), exactsum.new_accumulator(k)
+    by_value(vals, a)
+    by_lanes(vals, b)
+    assert np.array_equal(a, b)
+    got = exactsum.values_all(b)
+    assert np.isnan(got[6:9]).all() and got[4] == 0.0
+    for q in (0, 3, 9, 14):
+        assert got[q] == exactsum.exact_sum(vals[:, q])
+    # accumulators of any split of the rows add up to the whole, as an allreduce does
+    c = exactsum.new_accumulator(k)
+    for chunk in np.array_split(vals, 5):
+        part = exactsum.new_accumulator(k)
+        by_lanes(np.ascontiguousarray(chunk), part)
+        c += part
+    assert np.array_equal(exactsum.values_all(c), got, equal_nan=True)
+
+
 def test_exact_sum_out_of_range_is_nan():
     v = np.array([1.0, 2.0, 2.0 * exactsum.RANGE, 3.0])
     assert math.isnan(exactsum.exact_sum(v))
