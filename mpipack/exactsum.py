@@ -137,13 +137,21 @@ def lanes(acc):
 
     The accumulator is the same, bit for bit, as per-value ``add`` calls would give (each value
     is cut the same way and every piece is exact)."""
-    return np.zeros((NBINS + 2, acc.shape[0]))
+    return np.zeros((NBINS + 2, lane_count(acc)))
+
+
+@njit(cache=True, inline="always")
+def lane_count(acc):
+    """The lanes of ``acc``'s quantities: their number rounded up to a multiple of 4 (whole
+    vector registers; the lanes beyond the quantities stay zero and are never flushed)."""
+    return (acc.shape[0] + 3) // 4 * 4
 
 
 @njit(cache=True, inline="always")
 def add_lanes(fl, acc, values):
-    """Add values[q] to quantity q for every q (values: (n_quantities,)); see ``lanes``."""
-    for q in range(values.shape[0]):
+    """Add values[q] to quantity q for every q (values: (lane_count(acc),), zero beyond the
+    quantities); see ``lanes``."""
+    for q in range(fl.shape[1]):
         x = values[q]
         ok = abs(x) < RANGE  # also False for NaN
         r = x if ok else 0.0
@@ -168,7 +176,7 @@ def add_lanes(fl, acc, values):
 def flush_lanes(fl, acc):
     """Move the lanes' staging buffer into the int64 accumulator and carry (call once at the
     end too)."""
-    for q in range(fl.shape[1]):
+    for q in range(acc.shape[0]):
         acc[q, 0] += np.int64(fl[0, q] / ULP0)
         acc[q, 1] += np.int64(fl[1, q] / ULP1)
         acc[q, 2] += np.int64(fl[2, q] / ULP2)

@@ -19,8 +19,10 @@ wrapper per dimension, as in ``kernels``): a sphere's g and step then live in re
 first version looped over a runtime ``range(dim)`` through small temporary arrays, and its
 direction pass cost 8 times as much (6.1 ms against 0.77 ms for 50000 spheres, m = 5, 2D); the
 arithmetic and its order are the same, so are the bits. ``dots`` adds its 2m + 4 + b values
-per sphere to the exact sums as one row of lanes (``exactsum.add_lanes``, vectorised): 2.5 ms
--> ~1.5 ms in 2D at 50000 spheres, the same accumulator bit for bit.
+per sphere to the exact sums as one row of lanes (``exactsum.add_lanes``, vectorised, padded to
+whole vector registers): 2.6 -> 1.4 ms in 2D at 50000 spheres (3D 3.1 -> 1.5), the same
+accumulator bit for bit. (Lanes did not pay in the fire-al kernel's 4 + b sums: its FIRE
+passes took 25% longer at 2D N = 20000, so it keeps per-value adds.)
 """
 
 import numpy as np
@@ -38,7 +40,7 @@ def _dots(dim, x, x_new, n_local, qn, head, cap, acc, maxima):
     # one value per accumulator row and sphere, added as lanes (``exactsum.add_lanes``): the
     # 2m + 4 + b exact sums per sphere are most of this pass's time
     fl = exactsum.lanes(acc)
-    v = np.zeros(acc.shape[0])
+    v = np.zeros(exactsum.lane_count(acc))
     max2 = 0.0
     at_cap = 0
     for i in range(n_local):
