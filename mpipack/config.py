@@ -29,19 +29,26 @@ SCHEDULES = ("fixed", "fire-al")
 # (2.10) exactly)
 FIXED_FALLBACK = {"alpha": 7.8e-3, "beta": 2.8e3, "c": 2.0}
 PAPER_GAMMA = 1.6e-2  # with the fallback alpha and beta
-# stop.max_iter "auto": MAX_ITER_BASE up to N = MAX_ITER_N, then growing like the cluster's
-# diameter in sphere diameters, N^(1/b) (the iterations per unit of the trap's time at a step
-# bounded by the stiffest contact). The bound is a safeguard, not a criterion: about twice the
-# slowest certified run seen at the largest sizes measured (2D N = 32000: 109500 iterations, seed
-# 4, under a bound of 200000; 2D N = 8000 at most 7150, 3D N = 1e5 16950; docs/convergence.md,
-# sections 3j and 3r). From N = 32000 (section 3j) it left that 2D run uncertified at 100000.
+# stop.max_iter "auto": MAX_ITER_BASE up to N = MAX_ITER_N, then x (N / MAX_ITER_N)^p with
+# p = MAX_ITER_GROWTH[b]. The bound is a safeguard, not a criterion: about twice the slowest
+# certified run seen at the largest sizes measured. In 3D p = 1/3, the growth of the
+# iterations per unit of the trap's time at a step bounded by the stiffest contact (3D N = 1e5
+# certified in 16950 iterations under 232000). In 2D the polycrystal's grains slide for longer
+# the larger the packing, and the slowest certified runs grew faster than N^(1/2): 7150
+# iterations at N = 8000, 100500 at 32000, 556950 at 1e5 (seed 1, 2 ranks), which N^(1/2)'s
+# 354000 cut short (docs/convergence.md, sections 3i, 3r and 3t): p = 1 there (400000 at
+# 32000, 1250000 at 1e5). 1D keeps 1/b = 1.
 MAX_ITER_BASE, MAX_ITER_N = 100000, 8000
+MAX_ITER_GROWTH = {1: 1.0, 2: 1.0, 3: 1.0 / 3.0}
+MAX_ITER_LIMIT = 10 ** 12  # the largest stop.max_iter a scene may give
 
 
 def auto_max_iter(n, dim):
-    """The default iteration bound of a scene of n spheres in dim dimensions (see above)."""
-    grow = max(1.0, n / MAX_ITER_N) ** (1.0 / dim)
-    return int(round(MAX_ITER_BASE * grow, -3))
+    """The default iteration bound of a scene of n spheres in dim dimensions (see above), at
+    most MAX_ITER_LIMIT (so that an absurd n is refused for its own sake, not for a bound the
+    user never gave)."""
+    grow = max(1.0, n / MAX_ITER_N) ** MAX_ITER_GROWTH[dim]
+    return min(int(round(MAX_ITER_BASE * grow, -3)), MAX_ITER_LIMIT)
 
 DEFAULTS = {
     "name": "scene",
@@ -357,7 +364,7 @@ def validate(scene):
         raise SceneError(f"key 'stop.max_iter' must be a non-negative integer or \"auto\", "
                          f"got {scene['stop']['max_iter']!r}")
     _num(scene, "stop.max_iter", int, allow_zero=True)
-    if scene["stop"]["max_iter"] > 10 ** 12:
+    if scene["stop"]["max_iter"] > MAX_ITER_LIMIT:
         raise SceneError(f"key 'stop.max_iter' must be at most 1e12, got {scene['stop']['max_iter']}")
     _num(scene, "stop.max_seconds", allow_zero=True)
     _num(scene, "stop.overlap")
