@@ -124,14 +124,15 @@ def normalize_row(a):
 @njit(cache=True, inline="always")
 def lanes(acc):
     """A staging buffer for adding one value to *every* quantity of ``acc`` at a time
-    (``add_lanes``): shape (NBINS + 2, n_quantities), zeroed, bins by quantity so that the
+    (``add_lanes``): shape (NBINS + 2, lane_count(acc)), zeroed, bins by quantity so that the
     quantities are contiguous lanes (the compiler turns the loop over them into vector
     instructions; per-value ``add`` calls are not). Row NBINS counts out-of-range values, row
     NBINS + 1 (column 0) the calls since the last flush. The same three calls as ``staging``::
 
         fl = exactsum.lanes(acc)
+        values = np.zeros(exactsum.lane_count(acc))
         for i in ...:
-            values[:] = ...                       # one value per quantity
+            values[:n_quantities] = ...           # one value per quantity, zeros after
             exactsum.add_lanes(fl, acc, values)   # flushes by itself when due
         exactsum.flush_lanes(fl, acc)
 

@@ -17,8 +17,8 @@ a3 = 1, a4 = c_b, no speed cap), which writes X^n - g into x_new; it is read the
 Each is written once for a compile-time dimension (``_dots(dim, ...)`` inlined into one small
 wrapper per dimension, as in ``kernels``): a sphere's g and step then live in registers. The
 first version looped over a runtime ``range(dim)`` through small temporary arrays, and its
-direction pass cost 8 times as much (6.1 ms against 0.77 ms for 50000 spheres, m = 5, 2D); the
-arithmetic and its order are the same, so are the bits. ``dots`` adds its 2m + 4 + b values
+direction pass cost about three times as much (1.92 ms against 0.67 ms for 50000 spheres, m = 5,
+2D, an idle machine); the arithmetic and its order are the same, so are the bits. ``dots`` adds its 2m + 4 + b values
 per sphere to the exact sums as one row of lanes (``exactsum.add_lanes``, vectorised, padded to
 whole vector registers): 2.6 -> 1.4 ms in 2D at 50000 spheres (3D 3.1 -> 1.5), the same
 accumulator bit for bit. (Lanes did not pay in the fire-al kernel's 4 + b sums: its FIRE
