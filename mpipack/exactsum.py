@@ -66,6 +66,20 @@ def staging(acc):
 
 
 @njit(cache=True, inline="always")
+def cut(x):
+    """x (|x| < RANGE) cut into its four bins' pieces (q0, q1, q2, q3), each a multiple of
+    its bin's ulp (the module docstring's q_k); the part below 2**-78 is dropped."""
+    q0 = (x + M0) - M0
+    r = x - q0
+    q1 = (r + M1) - M1
+    r = r - q1
+    q2 = (r + M2) - M2
+    r = r - q2
+    q3 = (r + M3) - M3
+    return q0, q1, q2, q3
+
+
+@njit(cache=True, inline="always")
 def add(fbuf, acc, q, x):
     """Add x to quantity q: cut it into the bins of ``fbuf`` (see ``staging``); every
     FLUSH_EVERY additions the row is moved into the int64 accumulator ``acc``.
@@ -75,13 +89,7 @@ def add(fbuf, acc, q, x):
     if not (abs(x) < RANGE):  # also catches NaN
         fbuf[q, 4] += 1.0
     else:
-        q0 = (x + M0) - M0
-        r = x - q0
-        q1 = (r + M1) - M1
-        r = r - q1
-        q2 = (r + M2) - M2
-        r = r - q2
-        q3 = (r + M3) - M3
+        q0, q1, q2, q3 = cut(x)
         fbuf[q, 0] += q0
         fbuf[q, 1] += q1
         fbuf[q, 2] += q2
@@ -155,14 +163,7 @@ def add_lanes(fl, acc, values):
     for q in range(fl.shape[1]):
         x = values[q]
         ok = abs(x) < RANGE  # also False for NaN
-        r = x if ok else 0.0
-        q0 = (r + M0) - M0
-        r = r - q0
-        q1 = (r + M1) - M1
-        r = r - q1
-        q2 = (r + M2) - M2
-        r = r - q2
-        q3 = (r + M3) - M3
+        q0, q1, q2, q3 = cut(x if ok else 0.0)
         fl[0, q] += q0
         fl[1, q] += q1
         fl[2, q] += q2
@@ -176,7 +177,8 @@ def add_lanes(fl, acc, values):
 @njit(cache=True)
 def flush_lanes(fl, acc):
     """Move the lanes' staging buffer into the int64 accumulator and carry (call once at the
-    end too)."""
+    end too). Written out as ``flush_row`` is: the two sharing an inlined helper made the L-BFGS
+    dots pass 20% slower (2D, 50000 spheres: 1.64 against 1.39 ms)."""
     for q in range(acc.shape[0]):
         acc[q, 0] += np.int64(fl[0, q] / ULP0)
         acc[q, 1] += np.int64(fl[1, q] / ULP1)
