@@ -6,7 +6,9 @@ g_i = grad_i L_rho comes from the fire-al kernel run as a plain gradient pass (a
 a3 = 1, a4 = c_b, no speed cap), which writes X^n - g into x_new; it is read there.
 
     dots       exact sums of g.slot_j (S, Y, G_OLD), of g.g, of the positions X^n (b rows:
-               the centre of mass) and of |S_head|^2 (the last step's length); the largest
+               the centre of mass), of |S_head|^2 (the last step's length) and of
+               G_OLD.S_head (the last step's slope where it began: with g.S_head, the
+               descent test of a shortened step, whose B row is not the step taken); the largest
                |S_head,i|^2 and the number of spheres whose last step was shortened to the cap
     direction  Y_{y_slot} = g - G_OLD (if y_slot >= 0); step_i = sum_j coef_j basis_j(i) over
                [S, Y, g], shortened to ``cap`` if longer; S_{s_slot} = step; G_OLD = g;
@@ -76,6 +78,14 @@ def _dots(dim, x, x_new, n_local, qn, head, cap, acc, maxima):
             if dim > 2:
                 s2 += qn[i, head, 2] * qn[i, head, 2]
             v[k_slots + 1 + dim] = s2
+            # G_OLD.S_head: the slope of the step actually taken (shortened or not) at its start
+            gs = 0.0
+            gs += qn[i, k_slots - 1, 0] * qn[i, head, 0]
+            if dim > 1:
+                gs += qn[i, k_slots - 1, 1] * qn[i, head, 1]
+            if dim > 2:
+                gs += qn[i, k_slots - 1, 2] * qn[i, head, 2]
+            v[k_slots + 2 + dim] = gs
             if s2 > max2 or s2 != s2:
                 max2 = s2
             if s2 >= _AT_CAP * cap * cap:
@@ -212,10 +222,11 @@ _BACKTRACK = {1: _backtrack1, 2: _backtrack2, 3: _backtrack3}
 
 
 def dots(x, x_new, n_local, qn, head, cap, acc, maxima):
-    """acc rows: g.slot_j (j = 0 .. K-1), g.g, sum X^n (b rows), sum |S_head|^2; maxima[0]:
+    """acc rows: g.slot_j (j = 0 .. K-1), g.g, sum X^n (b rows), sum |S_head|^2, sum
+    G_OLD.S_head (the old gradient's slope along the step as taken, shortened or not); maxima[0]:
     max |S_head,i|^2 (head < 0: no last step, zeros). g_i = x_i - x_new_i. Returns the number
     of local spheres whose last step is at the cap. Shapes: x, x_new (n_total, b); qn
-    (n_local, K, b); acc int64 (K + 1 + b + 1, exactsum.NBINS + 1), added to."""
+    (n_local, K, b); acc int64 (K + 1 + b + 2, exactsum.NBINS + 1), added to."""
     return _DOTS[x.shape[1]](x, x_new, n_local, qn, head, cap, acc, maxima)
 
 

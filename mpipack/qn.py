@@ -52,7 +52,7 @@ class LBFGS:
 
     def __init__(self, m=5, h0=1.0):
         self.m = m
-        self.s = {"k": 0, "head": m - 1, "stepped": False, "h0": float(h0),
+        self.s = {"k": 0, "head": m - 1, "stepped": False, "h0": float(h0), "h0_max": np.inf,
                   "resets": 0, "rejected": 0, "backtracks": 0, "clipped": 0, "curvature": 0}
         self.B = np.zeros((2 * m + 1, 2 * m + 1))
 
@@ -75,7 +75,7 @@ class LBFGS:
         self.s.update(saved)
 
     # ---- one iteration ---------------------------------------------------------------------
-    def direction(self, dots, clipped=False):
+    def direction(self, dots, clipped=False, slope=None):
         """The next step from the new gradient's exact dots (length 2m + 2: g.S_j, g.Y_j,
         g.G_OLD, g.g). Returns (coef, y_slot, s_slot, accepted):
 
@@ -84,7 +84,15 @@ class LBFGS:
         coef None: a backtrack, the last step (slot s_slot) is halved and undone by half
         (``kernels_qn.backtrack``). ``clipped``: some sphere's last step was shortened
         (``kernels_qn.direction``), so that the stored step is not the one B holds: the memory
-        is dropped."""
+        is dropped, and ``slope`` (g_old.s of the step as taken, an exact sum of
+        ``kernels_qn.dots``) with g.s (dots) decides whether it descended. One that did not
+        halves the gradient scale h0: a gradient step that the trust region shortens and that
+        overshoots anyway (a sphere flung into a stiff contact and back) would otherwise repeat
+        forever, never tested (two spheres in 3D: a 2-cycle between a gap of 2.7e-3 d and an
+        overlap of 0.097 d). The scale so halved also bounds the scale s.y / y.y that later
+        pairs give (``h0_max``): a pair taken where no contact is touched learns W's curvature
+        alone, 1, and its next step would overshoot into the contact again. Without ``slope`` a
+        shortened step is not tested."""
         m, s, B = self.m, self.s, self.B
         G = 2 * m  # the gradient's index in the basis
         gg = float(dots[2 * m + 1])
@@ -93,6 +101,10 @@ class LBFGS:
         if s["stepped"] and clipped:
             accepted = False
             s["clipped"] += 1
+            if slope is not None and 0.5 * (slope + float(dots[s["head"]])) > ARMIJO * slope:
+                s["rejected"] += 1
+                s["h0"] *= 0.5
+                s["h0_max"] = s["h0"]
         elif s["stepped"]:
             h = s["head"]
             g_s = float(dots[h])  # g.s of the step just taken (an exact sum of the kernel)
@@ -118,7 +130,8 @@ class LBFGS:
                     B[m + h, :] = y_row
                     B[:, m + h] = y_row
                     s["k"] = min(s["k"] + 1, m)
-                    s["h0"] = sy / yy
+                    s["h0"] = min(sy / yy, s["h0_max"])
+                    s["h0_max"] *= 2.0  # a bound that held widens again (inf stays inf)
                     y_slot = h
                 else:
                     accepted = False

@@ -349,4 +349,5 @@ class FireAL:
                 "penalty_factor": s["cb"],
                 "lbfgs_from": s["qn_from"] if s["qn"] else None,
                 "lbfgs_resets": self.lbfgs.s["resets"] if s["qn"] else 0,
-                "lbfgs_rejected": self.lbfgs.s["rejected"] if s["qn"] else 0}
+                "lbfgs_rejected": self.lbfgs.s["rejected"] if s["qn"] else 0,
+                "lbfgs_shortened": self.lbfgs.s["clipped"] if s["qn"] else 0}

@@ -395,12 +395,13 @@ class Solver:
     def _qn_reduction(self):
         """The reduction of an L-BFGS iteration: the loop's blocks (``_loop_reduction``) and the
         memory's (``kernels_qn.dots``): the new gradient's dots with the 2m + 1 slots and
-        itself, the centre of mass of X^n, and the last step's |s|^2, max |s_i|^2 and shortened
-        steps."""
+        itself, the centre of mass of X^n, and the last step's |s|^2, slope g_old.s, max
+        |s_i|^2 and shortened steps."""
         if self._red_qn is None:
             k = qn.slots(self.schedule.lbfgs.m)
             red = self._loop_reduction()
-            red.add_exact("qn", [("qn_dots", k + 1), ("qn_x", self.dim), ("qn_move2", 1)])
+            red.add_exact("qn", [("qn_dots", k + 1), ("qn_x", self.dim), ("qn_move2", 1),
+                                 ("qn_slope", 1)])
             red.add_max("qn", [("qn_step2", 1)])
             red.add_count("qn_clipped")
             self._red_qn = red
@@ -448,7 +449,8 @@ class Solver:
             "max_gain": red.max("max_gain"), "max_row": red.max("max_row"),
         }
         self._common_figures(red, fig)
-        coef, y_slot, s_slot, _ = lb.direction(dots, red.count("qn_clipped") > 0)
+        coef, y_slot, s_slot, _ = lb.direction(dots, red.count("qn_clipped") > 0,
+                                               slope=red.value("qn_slope"))
         t.lap(REDUCE)
         if coef is None:
             kernels_qn.backtrack(st.x, st.x_new, n, st.qn, s_slot)

@@ -24,7 +24,7 @@ def lbfgs_step(lb, x, g, mem):
     next x and whether the step was accepted."""
     n, dim = x.shape
     k = qn.slots(lb.m)
-    acc = exactsum.new_accumulator(k + 1 + dim + 1)
+    acc = exactsum.new_accumulator(k + 1 + dim + 2)
     head = lb.s["head"] if lb.s["stepped"] else -1
     x_next = x - g  # what the gradient pass leaves in x_new
     clipped = kernels_qn.dots(x, x_next, n, mem, head, 1e9, acc, np.zeros(1))
@@ -116,14 +116,14 @@ def test_shortened_steps_drop_the_memory():
     x = np.zeros((n, dim))
     cap = 1e-3  # every sphere's first step is longer
     g = grad(x.ravel()).reshape(n, dim)
-    acc = exactsum.new_accumulator(k + 1 + dim + 1)
+    acc = exactsum.new_accumulator(k + 1 + dim + 2)
     x1 = x - g
     kernels_qn.dots(x, x1, n, mem, -1, cap, acc, np.zeros(1))
     coef, y_slot, s_slot, _ = lb.direction(exactsum.values_all(acc)[:k + 1])
     kernels_qn.direction(x, x1, n, mem, coef, y_slot, s_slot, cap)
     np.testing.assert_allclose(np.linalg.norm(x1 - x, axis=1), cap, rtol=1e-12)
     g1 = grad(x1.ravel()).reshape(n, dim)
-    acc = exactsum.new_accumulator(k + 1 + dim + 1)
+    acc = exactsum.new_accumulator(k + 1 + dim + 2)
     maxima = np.zeros(1)
     clipped = kernels_qn.dots(x1, x1 - g1, n, mem, lb.s["head"], cap, acc, maxima)
     assert clipped == n
@@ -151,3 +151,48 @@ def test_save_restore_continues_the_same():
         xa, _ = lbfgs_step(lb, xa, grad(xa.ravel()).reshape(n, dim), mem)
         xb, _ = lbfgs_step(twin, xb, grad(xb.ravel()).reshape(n, dim), mem2)
     assert np.array_equal(xa, xb)
+
+
+def test_a_shortened_step_that_overshoots_halves_the_gradient_scale():
+    """Two spheres pulled together (W's gradient) with a stiff wall where they meet: a
+    gradient step of scale 1 is shortened by the trust region and lands deep in the wall; the
+    next gradient (the wall's) is long too and throws it back. Untested, the pair repeated that
+    2-cycle forever; tested with the step's slope where it began (an exact sum of ``dots``),
+    each overshoot halves h0 (and bounds the s.y / y.y of later pairs, which away from the wall
+    would be W's curvature, 1) until the steps fit the wall and the iterates settle at it."""
+    n, dim, cap, wall, k_wall = 2, 3, 0.05, 1.0, 1500.0
+
+    def grad(x):  # W = 1/2 sum |x_i - xbar|^2 plus a stiff penalty on |x_0 - x_1| < wall
+        xbar = x.mean(axis=0)
+        g = x - xbar
+        r = x[0] - x[1]
+        dist = np.linalg.norm(r)
+        if dist < wall:
+            push = -k_wall * (wall - dist) * r / dist
+            g[0] += push
+            g[1] -= push
+        return g
+
+    lb = qn.LBFGS(5, h0=1.0)
+    k = qn.slots(5)
+    mem = np.zeros((n, k, dim))
+    x = np.array([[0.0, 0.0, -0.5015], [0.0, 0.0, 0.5015]])  # a gap of 3e-3
+    gaps = []
+    for _ in range(400):
+        g = grad(x)
+        acc = exactsum.new_accumulator(k + 1 + dim + 2)
+        head = lb.s["head"] if lb.s["stepped"] else -1
+        x_next = x - g
+        clipped = kernels_qn.dots(x, x_next, n, mem, head, cap, acc, np.zeros(1))
+        values = exactsum.values_all(acc)
+        coef, y_slot, s_slot, _ = lb.direction(values[:k + 1], clipped > 0, slope=values[k + 2 + dim])
+        if coef is None:
+            kernels_qn.backtrack(x, x_next, n, mem, s_slot)
+        else:
+            kernels_qn.direction(x, x_next, n, mem, coef, y_slot, s_slot, cap)
+        x = x_next
+        gaps.append(np.linalg.norm(x[0] - x[1]) - wall)
+    assert lb.s["rejected"] > 0 and lb.s["h0_max"] < 0.1
+    # settled where the wall balances the pull: k_wall (wall - dist) = 1/2 dist
+    balance = -0.5 * wall / (k_wall + 0.5)
+    assert max(abs(g - balance) for g in gaps[-50:]) < 1e-6

@@ -54,3 +54,24 @@ def test_a_median_on_an_uncertified_run_is_not_given():
     assert scaling_fit.medians([ok, ok, bad])[2] == [(100, 2, 3, 500, 1.0)]
     # two certified, two not: the median's upper half is a failed run
     assert scaling_fit.medians([ok, ok, bad, bad])[2][0][3] is None
+
+
+def test_the_targets_are_judged_from_the_runs():
+    def run(n, its, converged=True, w=0.0693, dim=2):
+        return {"n": n, "dim": dim, "converged": converged, "iterations": its, "seconds": 1.0,
+                "W_over_N2": w}
+    # 2D: iterations ~ N^0.5 from 2000 to 32000, every N = 2000 seed fast and dense enough
+    good = [run(2000, 3000), run(2000, 3100), run(8000, 6000), run(32000, 12000)]
+    table = scaling_fit.medians(good)
+    assert [m for m, _ in scaling_fit.targets(good, table)] == [True, True, True]
+    # one N = 2000 seed beyond a third of the paper's 13000 iterations
+    slow = good + [run(2000, 4400)]
+    assert not scaling_fit.targets(slow, scaling_fit.medians(slow))[-1][0]
+    # one N = 2000 seed too loose (W/N^2 above 0.0722)
+    loose = good + [run(2000, 3000, w=0.0725)]
+    assert not scaling_fit.targets(loose, scaling_fit.medians(loose))[-1][0]
+    # an uncertified run anywhere fails the first target; growth like N fails the second
+    steep = [run(2000, 2000), run(8000, 8000, converged=False), run(8000, 8000), run(32000, 32000)]
+    judged = scaling_fit.targets(steep, scaling_fit.medians(steep))
+    assert judged[0][0] is False and "N=8000: 1" in judged[0][1]
+    assert judged[1][0] is False and "N^1.00" in judged[1][1]

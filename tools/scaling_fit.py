@@ -8,6 +8,11 @@ slope N^(1/b) for iterations and N^(1 + 1/b) for seconds, an iteration costing ~
 
     python tools/scaling_fit.py SWEEP.jsonl [...] [--n-min 2000] [--n-max 100000] [--png out.png]
 
+It ends with the convergence targets, each marked met or NOT MET from the runs in the files:
+every run certified; iterations growing no faster than N^(1/b) over N = 2000 - 1e5; and in 2D
+at N = 2000 every seed certified within a third of the paper's 13000 iterations with W/N^2 at
+most 0.0722.
+
 Runs that did not certify count in the "certified" column and, in the medians, as slower than
 every certified run (a censored sample): a median that falls on one is not given.
 """
@@ -93,7 +98,48 @@ def report(table, n_min, n_max):
     return fits
 
 
-def plot(rows, table, path):
+PAPER_ITERATIONS_2D_2000 = 13000  # the paper's iterations at its N = 2000 scene (Table 1)
+W_OVER_N2_2D_2000 = 0.0722  # the issue's bound on W/N^2 at 2D N = 2000 (LAMMPS FIRE: 0.0710 - 0.0724)
+TARGET_FIT = (2000, 100000)  # the range of N over which the iteration exponent is judged
+
+
+def targets(rows, table):
+    """The convergence targets, judged from the runs: a list of (met, text), printed by main.
+
+    - every run certified, per dimension;
+    - the median iterations grow no faster than N^(1/b) over TARGET_FIT (needs two sizes);
+    - 2D N = 2000: every seed certified within PAPER_ITERATIONS_2D_2000 / 3 iterations with
+      W/N^2 <= W_OVER_N2_2D_2000 (only when such runs are in the files)."""
+    out = []
+    for dim, entries in sorted(table.items()):
+        ok = sum(e[1] for e in entries)
+        runs = sum(e[2] for e in entries)
+        bad = [f"N={e[0]}: {e[2] - e[1]}" for e in entries if e[1] < e[2]]
+        out.append((ok == runs, f"{dim}D: {ok}/{runs} runs certified over N = "
+                    f"{entries[0][0]} - {entries[-1][0]}" + (f" (not: {', '.join(bad)})" if bad else "")))
+        lo, hi = TARGET_FIT
+        inside = [(e[0], e[3]) for e in entries if lo <= e[0] <= hi and e[3] is not None]
+        k = fit_exponent(inside)
+        if k is not None:
+            out.append((k[0] <= 1.0 / dim, f"{dim}D: iterations ~ N^{k[0]:.2f} over N = {lo} - {hi} "
+                        f"({len(inside)} sizes), target at most N^{1.0 / dim:.2f}"))
+    at2000 = [r for r in rows if int(r["dim"]) == 2 and int(r["n"]) == 2000]
+    if at2000:
+        limit = PAPER_ITERATIONS_2D_2000 / 3
+        good = [r for r in at2000 if r.get("converged") and r["iterations"] <= limit
+                and r.get("W_over_N2", math.inf) <= W_OVER_N2_2D_2000]
+        worst_its = max(r["iterations"] for r in at2000)
+        worst_w = max(r.get("W_over_N2", math.inf) for r in at2000)
+        out.append((len(good) == len(at2000),
+                    f"2D N = 2000: {len(good)}/{len(at2000)} seeds certified within {limit:.0f} "
+                    f"iterations with W/N^2 <= {W_OVER_N2_2D_2000} (at most {worst_its} "
+                    f"iterations, W/N^2 up to {worst_w:.5f})"))
+    return out
+
+
+def plot(rows, table, path, n_min=0):
+    """The figure; the dotted target slopes start at the first median with N >= n_min (below it
+    the runs' time is start-up, not iterations)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -114,11 +160,12 @@ def plot(rows, table, path):
             med = [(e[0], e[col]) for e in entries if e[col] is not None]
             if med:
                 ax.plot([m[0] for m in med], [m[1] for m in med], "-o", color=c, label=f"{dim}D median")
-                n0, y0 = med[0]
+                anchored = [m for m in med if m[0] >= n_min] or med
+                n0, y0 = anchored[0]
                 n1 = med[-1][0]
                 slope = extra + 1.0 / dim
                 ax.plot([n0, n1], [y0, y0 * (n1 / n0) ** slope], ":", color=c,
-                        label=f"N^({slope:.2f}) from the first")
+                        label=f"N^({slope:.2f}) from N = {n0}")
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("N")
@@ -143,8 +190,11 @@ def main(argv=None):
         return 2
     table = medians(rows)
     report(table, args.n_min, args.n_max)
+    print("targets:")
+    for met, text in targets(rows, table):
+        print(f"  {'met    ' if met else 'NOT MET'}  {text}")
     if args.png:
-        plot(rows, table, args.png)
+        plot(rows, table, args.png, args.n_min)
     return 0
 
 
