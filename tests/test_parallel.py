@@ -126,6 +126,25 @@ def test_same_bits_on_1_2_3_ranks(run_mpipack, name):
             assert s["far_ghosts"] > 0, s
 
 
+def test_shortened_lbfgs_steps_same_bits_on_1_2_3_ranks(run_mpipack):
+    """Five spheres in 3D (seed 7): the L-BFGS phase's shortened steps fail their descent test
+    again and again (the slope g_old.s is an exact sum of the reduction), halving the gradient
+    scale; the decisions and the iterates are the same on 1, 2 and 3 ranks (some of them
+    empty)."""
+    sets = ["n=5", "dim=3", "seed=7", "stop.rule=eps", "stop.eps=0", "stop.max_iter=600"]
+    runs = {}
+    for P in (1, 2, 3):
+        proc, summary, dump = run_mpipack(P, None, sets, dump=True)
+        assert_ok(proc, summary)
+        runs[P] = (summary, dump)
+    s1, d1 = runs[1]
+    assert s1["schedule"]["lbfgs_rejected"] > 10 and s1["schedule"]["lbfgs_shortened"] > 10, s1["schedule"]
+    for P in (2, 3):
+        s, d = runs[P]
+        assert_bitwise_equal(d1, d, f"1 rank vs {P} ranks")
+        assert s["schedule"] == s1["schedule"] and s["W"] == s1["W"], (P, s["schedule"])
+
+
 def test_empty_rank_two_spheres(run_mpipack):
     """n = 2 on 3 ranks: one rank owns nothing, all the time."""
     p1, s1, d1 = run_mpipack(1, "two-spheres", [], dump=True)
