@@ -42,6 +42,12 @@ MAX_BACKTRACK = 4
 TRUST = 0.05
 
 
+def overshot(slope_old, slope_new):
+    """The trapezoid test of a step s: True when L_rho did not fall enough, (g_old.s + g.s) / 2
+    > ARMIJO g_old.s (slope_old = g_old.s where the step began, slope_new = g.s where it ended)."""
+    return 0.5 * (slope_old + slope_new) > ARMIJO * slope_old
+
+
 def slots(m):
     """Per-sphere vectors kept: S (m), Y (m), G_OLD."""
     return 2 * m + 1
@@ -75,7 +81,7 @@ class LBFGS:
         self.s.update(saved)
 
     # ---- one iteration ---------------------------------------------------------------------
-    def direction(self, dots, clipped=False, slope=None):
+    def direction(self, dots, slope, clipped=False):
         """The next step from the new gradient's exact dots (length 2m + 2: g.S_j, g.Y_j,
         g.G_OLD, g.g). Returns (coef, y_slot, s_slot, accepted):
 
@@ -85,14 +91,14 @@ class LBFGS:
         (``kernels_qn.backtrack``). ``clipped``: some sphere's last step was shortened
         (``kernels_qn.direction``), so that the stored step is not the one B holds: the memory
         is dropped, and ``slope`` (g_old.s of the step as taken, an exact sum of
-        ``kernels_qn.dots``) with g.s (dots) decides whether it descended. One that did not
+        ``kernels_qn.dots``; unused for a step that was not shortened, whose g_old.s B holds)
+        with g.s (dots) decides whether it descended. One that did not
         halves the gradient scale h0: a gradient step that the trust region shortens and that
         overshoots anyway (a sphere flung into a stiff contact and back) would otherwise repeat
         forever, never tested (two spheres in 3D: a 2-cycle between a gap of 2.7e-3 d and an
         overlap of 0.097 d). The scale so halved also bounds the scale s.y / y.y that later
         pairs give (``h0_max``): a pair taken where no contact is touched learns W's curvature
-        alone, 1, and its next step would overshoot into the contact again. Without ``slope`` a
-        shortened step is not tested."""
+        alone, 1, and its next step would overshoot into the contact again."""
         m, s, B = self.m, self.s, self.B
         G = 2 * m  # the gradient's index in the basis
         gg = float(dots[2 * m + 1])
@@ -101,7 +107,7 @@ class LBFGS:
         if s["stepped"] and clipped:
             accepted = False
             s["clipped"] += 1
-            if slope is not None and 0.5 * (slope + float(dots[s["head"]])) > ARMIJO * slope:
+            if overshot(slope, float(dots[s["head"]])):
                 s["rejected"] += 1
                 s["h0"] *= 0.5
                 s["h0_max"] = s["h0"]
@@ -109,7 +115,7 @@ class LBFGS:
             h = s["head"]
             g_s = float(dots[h])  # g.s of the step just taken (an exact sum of the kernel)
             go_s = float(B[h, G])  # g_old.s, filled when the step was taken
-            if 0.5 * (go_s + g_s) > ARMIJO * go_s:  # L_rho did not fall enough (trapezoid)
+            if overshot(go_s, g_s):
                 s["rejected"] += 1
                 if s["backtracks"] < MAX_BACKTRACK:
                     s["backtracks"] += 1

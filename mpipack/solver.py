@@ -449,8 +449,7 @@ class Solver:
             "max_gain": red.max("max_gain"), "max_row": red.max("max_row"),
         }
         self._common_figures(red, fig)
-        coef, y_slot, s_slot, _ = lb.direction(dots, red.count("qn_clipped") > 0,
-                                               slope=red.value("qn_slope"))
+        coef, y_slot, s_slot, _ = lb.direction(dots, red.value("qn_slope"), red.count("qn_clipped") > 0)
         t.lap(REDUCE)
         if coef is None:
             kernels_qn.backtrack(st.x, st.x_new, n, st.qn, s_slot)

@@ -28,7 +28,8 @@ def lbfgs_step(lb, x, g, mem):
     head = lb.s["head"] if lb.s["stepped"] else -1
     x_next = x - g  # what the gradient pass leaves in x_new
     clipped = kernels_qn.dots(x, x_next, n, mem, head, 1e9, acc, np.zeros(1))
-    coef, y_slot, s_slot, ok = lb.direction(exactsum.values_all(acc)[:k + 1], clipped > 0)
+    values = exactsum.values_all(acc)
+    coef, y_slot, s_slot, ok = lb.direction(values[:k + 1], values[k + 2 + dim], clipped > 0)
     if coef is None:
         kernels_qn.backtrack(x, x_next, n, mem, s_slot)
     else:
@@ -119,7 +120,8 @@ def test_shortened_steps_drop_the_memory():
     acc = exactsum.new_accumulator(k + 1 + dim + 2)
     x1 = x - g
     kernels_qn.dots(x, x1, n, mem, -1, cap, acc, np.zeros(1))
-    coef, y_slot, s_slot, _ = lb.direction(exactsum.values_all(acc)[:k + 1])
+    values = exactsum.values_all(acc)
+    coef, y_slot, s_slot, _ = lb.direction(values[:k + 1], values[k + 2 + dim])
     kernels_qn.direction(x, x1, n, mem, coef, y_slot, s_slot, cap)
     np.testing.assert_allclose(np.linalg.norm(x1 - x, axis=1), cap, rtol=1e-12)
     g1 = grad(x1.ravel()).reshape(n, dim)
@@ -130,7 +132,8 @@ def test_shortened_steps_drop_the_memory():
     assert maxima[0] == pytest.approx(cap * cap, rel=1e-12)
     assert exactsum.values_all(acc)[k + 1 + dim] == pytest.approx(n * cap * cap, rel=1e-12)
     resets = lb.s["resets"]
-    lb.direction(exactsum.values_all(acc)[:k + 1], clipped > 0)
+    values = exactsum.values_all(acc)
+    lb.direction(values[:k + 1], values[k + 2 + dim], clipped > 0)
     assert lb.s["resets"] == resets + 1 and lb.s["k"] == 0
 
 
@@ -185,7 +188,7 @@ def test_a_shortened_step_that_overshoots_halves_the_gradient_scale():
         x_next = x - g
         clipped = kernels_qn.dots(x, x_next, n, mem, head, cap, acc, np.zeros(1))
         values = exactsum.values_all(acc)
-        coef, y_slot, s_slot, _ = lb.direction(values[:k + 1], clipped > 0, slope=values[k + 2 + dim])
+        coef, y_slot, s_slot, _ = lb.direction(values[:k + 1], values[k + 2 + dim], clipped > 0)
         if coef is None:
             kernels_qn.backtrack(x, x_next, n, mem, s_slot)
         else:
