@@ -12,13 +12,14 @@ def _numba_cache_dir():
 
     numba invalidates a cached function when its own file changes, not when a function it
     inlines from another module does (kernels inline exactsum.add): a stale cache would then
-    run old code. A cache folder per source hash cannot be stale. Set before numba is
-    imported; a NUMBA_CACHE_DIR chosen by the user is left alone.
+    run old code. A cache folder per hash of every source file of the package, subpackages
+    included, cannot be stale. Set before numba is imported; a NUMBA_CACHE_DIR chosen by the
+    user is left alone.
     """
     here = Path(__file__).resolve().parent
     h = hashlib.sha256()
-    for p in sorted(here.glob("*.py")):
-        h.update(p.name.encode())
+    for p in sorted(here.rglob("*.py")):
+        h.update(p.relative_to(here).as_posix().encode())
         h.update(p.read_bytes())
     return str(here / "__pycache__" / f"numba-{h.hexdigest()[:16]}")
 

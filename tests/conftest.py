@@ -26,7 +26,7 @@ TIMEOUT = 300
 
 # the environment of every subprocess: the one `mpipack suite` builds for its runs (root,
 # oversubscription, yield when idle, this checkout first on PYTHONPATH)
-from mpipack.suite import mpi_env  # noqa: E402
+from mpipack.experiments.suite import mpi_env
 
 
 def mpirun(n, args, cwd, timeout=TIMEOUT):
@@ -108,7 +108,7 @@ def step_each(s, n, fn):
     iterations), calling fn(figures) after each. Returns run's result dict.
 
     Tests observe the trajectory through a hook, as any other user of the loop does."""
-    from mpipack import hooks, solver as solver_mod
+    from mpipack.engine import hooks, solver as solver_mod
     scene = s.scene.replace(stop={"eps": 0.0, "max_iter": s.state.iteration + n})
     _, res = solver_mod.run(scene, s.comm, hooks=[hooks.Hook(lambda ctx: fn(ctx.figures), every=1)],
                             solver=s)

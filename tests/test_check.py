@@ -12,7 +12,8 @@ import pytest
 
 from conftest import describe, mpi_env, mpirun
 
-from mpipack import check, config
+from mpipack.analysis import check
+from mpipack import config
 
 
 def cli(args, cwd, timeout=300):
@@ -185,7 +186,7 @@ def test_decay_rate_of_a_run_is_the_spectral_radius(tmp_path):
     ["n=600", "dim=2", 'init.kind="lattice"', "init.spacing=0.5"],
 ])
 def test_overlap_estimate_against_a_generated_start(sets):
-    from mpipack import init
+    from mpipack.engine import initial as init
     sc = config.load(None, sets)
     x = init.positions(sc, np.arange(sc.n, dtype=np.int64))
     r2 = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)

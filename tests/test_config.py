@@ -159,7 +159,7 @@ def test_starts_that_scale():
     """init.sigma = "auto" keeps the peak density of the paper's N = 2000 start; the ball start
     has the requested packing fraction; both are functions of (seed, gid) only."""
     import numpy as np
-    from mpipack import init
+    from mpipack.engine import initial as init
     s = config.load("default", ["n=8000", "init.sigma=auto"])
     assert init.gaussian_sigma(s) == pytest.approx(2.0, rel=1e-15)  # (8000/2000)^(1/2)
     s3 = config.load("default", ["n=16000", "dim=3", "init.sigma=auto"])

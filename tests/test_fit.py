@@ -9,9 +9,11 @@ import math
 import numpy as np
 import pytest
 
-from mpipack import config, measures, solver
-from mpipack.comm import Comm
-from mpipack.state import BlockState
+from mpipack import config
+from mpipack.stop import measures
+from mpipack.engine import solver
+from mpipack.parallel.comm import Comm
+from mpipack.parallel.state import BlockState
 
 
 def solver_at(x, diam, form="S"):
@@ -118,7 +120,7 @@ def test_the_momentum_beats_plain_projected_gradient_steps(monkeypatch):
     """A heap of 200 overlapping discs (a few hundred contacts): with FISTA's momentum the fit
     gets further in 200 steps than the same steps with the momentum off (beta = 0
     throughout; measured 1.3e-4 against 0.28)."""
-    from mpipack import fit
+    from mpipack.stop import fit
     rng = np.random.default_rng(0)
     n = 200
     x = rng.uniform(-6.0, 6.0, size=(n, 2))
@@ -156,7 +158,7 @@ def test_the_certifier_gives_the_first_fit_less_budget_than_later_ones(monkeypat
     of a run needs FIRST_FIT_STEPS of it (250: short runs are certified by a fit), every later
     one MIN_FIT_STEPS (500: 250-step fits left 3D N = 1e5 uncertified); each takes the budget
     left. Checked with a stand-in for the metrics pass and for a fit that never certifies."""
-    from mpipack import certify
+    from mpipack.stop import certificate as certify
     from mpipack.config import Stop
     stop = Stop(rule="certified", eps=0.0, max_iter=100000, max_seconds=math.inf, overlap=1e-3,
                 kkt=1e-2, w_rtol=1e-4, w_window=0.1, check_every=50, watchdog=True)

@@ -12,7 +12,9 @@ from conftest import REPO, describe, mpi_env
 
 PROBE = r"""
 import sys
-from mpipack import cli, kernels, kernels_fire, kernels_qn, neighbors
+from mpipack import cli
+from mpipack.kernels import daha as kernels, fire as kernels_fire, lbfgs as kernels_qn
+from mpipack.parallel import neighbors
 rc = cli.main(["run", "--quiet", "--out", sys.argv[1], "--set", "stop.rule=eps", "--set", "stop.eps=0"]
               + sys.argv[2:])
 assert rc == 0, rc
@@ -69,8 +71,9 @@ def test_only_the_scene_kernels_are_compiled(tmp_path, sets, want, unwanted):
 
 
 def test_one_rank_never_exchanges_ghosts(monkeypatch):
-    from mpipack import comm as comm_mod
-    from mpipack import config, solver
+    from mpipack.parallel import comm as comm_mod
+    from mpipack import config
+    from mpipack.engine import solver
 
     def forbidden(*a, **k):
         raise AssertionError("ghost exchange called on one rank")
@@ -83,8 +86,9 @@ def test_one_rank_never_exchanges_ghosts(monkeypatch):
 
 
 def test_metrics_pass_runs_only_at_the_end():
-    from mpipack import config, solver
-    from mpipack.comm import Comm
+    from mpipack import config
+    from mpipack.engine import solver
+    from mpipack.parallel.comm import Comm
     scene = config.load("paper-2d", ["n=100", "stop.eps=0", "stop.max_iter=100"])
     s = solver.Solver(scene, Comm())
     s.initialise()

@@ -12,7 +12,8 @@ import zlib
 import numpy as np
 import pytest
 
-from mpipack import exactsum, kernels, neighbors
+from mpipack.parallel import exactsum, neighbors
+from mpipack.kernels import daha as kernels
 
 # ---------------------------------------------------------------------------------------------
 # reference implementation

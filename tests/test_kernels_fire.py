@@ -7,7 +7,8 @@ import zlib
 import numpy as np
 import pytest
 
-from mpipack import exactsum, kernels, kernels_fire
+from mpipack.parallel import exactsum
+from mpipack.kernels import daha as kernels, fire as kernels_fire
 
 from test_kernels import random_cloud, random_lambda, ref_phi_grad, rows_complete
 
@@ -159,7 +160,7 @@ def test_radial_equalisation_makes_a_uniform_ball(dim):
     """A Gaussian cloud spread by its own radial distribution: every centre keeps its direction
     and its rank in radius, and the radii become those of a uniform ball (F(r) = (r/R)^b), also
     when the histogram is summed from several ranks' parts."""
-    from mpipack import init
+    from mpipack.engine import initial as init
     rng = np.random.default_rng(dim)
     n, radius = 4000, 30.0
     x = rng.normal(size=(n, dim)) * 0.7

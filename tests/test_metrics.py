@@ -47,7 +47,8 @@ def test_metrics_rows_approach_the_optimum_and_are_rank_independent(run_mpipack)
 def _two_sphere_kkt(form, r, lam, pen, floor, tol):
     """The metrics pass on two spheres of diameter 1 at distance r on the x axis (Xbar = 0)
     with stored multiplier lam, in the force-multiplier mode: (KKT residual, pressure)."""
-    from mpipack import exactsum, kernels
+    from mpipack.parallel import exactsum
+    from mpipack.kernels import daha as kernels
     x = np.array([[-r / 2, 0.0], [r / 2, 0.0]])
     diam = np.ones(2)
     po = np.array([0, 1, 2], dtype=np.int64)
@@ -88,7 +89,8 @@ def test_force_imbalance_is_the_net_force_over_the_contact_forces(form):
     carries half the force that balances the pull of W (r/2 at each sphere): the net force is
     r/4 and the contact force r/4, so the force imbalance is 1 and the KKT residual 1/2; with
     the balancing multiplier both are 0; with none the imbalance is infinite (no contact force)."""
-    from mpipack import exactsum, kernels
+    from mpipack.parallel import exactsum
+    from mpipack.kernels import daha as kernels
     r = 0.999
     x = np.array([[-r / 2, 0.0], [r / 2, 0.0]])
     po, pj = np.array([0, 1, 2], dtype=np.int64), np.array([1, 0], dtype=np.int64)
@@ -118,7 +120,8 @@ def test_net_force_per_sphere_is_its_row_of_the_kkt_residual(form):
     carries half the balancing force, and a free sphere at x = 3 with no partner. Net forces:
     r/4 on each of the pair (the pull r/2 less the contact force r/4), 3 on the free one (its
     whole pull). max_net_force is 3 and its share of the squared residual 9 / (9 + 2 (r/4)^2)."""
-    from mpipack import exactsum, kernels
+    from mpipack.parallel import exactsum
+    from mpipack.kernels import daha as kernels
     r = 0.999
     x = np.array([[-r / 2, 0.0], [r / 2, 0.0], [3.0, 0.0]])
     po, pj = np.array([0, 1, 2, 2], dtype=np.int64), np.array([1, 0], dtype=np.int64)

@@ -28,8 +28,11 @@ import numpy as np
 import pytest
 
 from conftest import assert_bitwise_equal, describe, mpipack_run, step_each
-from mpipack import config, exactsum, kernels, neighbors, solver
-from mpipack.comm import Comm
+from mpipack import config
+from mpipack.parallel import exactsum, neighbors
+from mpipack.kernels import daha as kernels
+from mpipack.engine import solver
+from mpipack.parallel.comm import Comm
 
 RUN_TIMEOUT = 180  # seconds, per mpirun; healthy runs below take a few seconds
 

@@ -7,7 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from mpipack import exactsum, kernels_qn, qn
+from mpipack.parallel import exactsum
+from mpipack.kernels import lbfgs as kernels_qn
+from mpipack.methods import lbfgs as qn
 
 
 def quadratic(n, dim, seed):

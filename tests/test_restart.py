@@ -126,7 +126,7 @@ def test_numerical_trouble_keeps_the_last_good_state(tmp_path):
     ck = tmp_path / "out" / "checkpoint.h5"
     assert ck.exists() and any(f.endswith("checkpoint.h5") for f in s["files"]), s["files"]
     from mpipack.io.checkpoint import read_checkpoint
-    from mpipack.comm import Comm
+    from mpipack.parallel.comm import Comm
     block, scalars, _ = read_checkpoint(Comm(), str(ck))
     import numpy as np
     assert np.all(np.isfinite(block["x"]))
@@ -169,7 +169,7 @@ def test_vtk_command(tmp_path):
 def test_coincident_centres_are_separated_the_same_on_any_rank_count(tmp_path):
     """All 50 centres exactly at one point (a state no scene can make): the run moves them apart
     by 1e-6 d in directions drawn from (seed, gid), then expands, bit for bit on 1 and 3 ranks."""
-    from mpipack.suite import one_point_checkpoint
+    from mpipack.experiments.suite import one_point_checkpoint
     seed_dir = one_point_checkpoint(str(tmp_path), 50, 2, "S", [])
     dumps = {}
     for P in (1, 3):

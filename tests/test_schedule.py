@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from mpipack import schedule
+from mpipack.methods import fire_al as schedule
 
 
 def fire_schedule(overlap_tol=1e-3, dim=2):

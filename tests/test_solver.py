@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from conftest import step_each
-from mpipack import config, init, solver
-from mpipack.comm import Comm
+from mpipack import config
+from mpipack.engine import initial as init, solver
+from mpipack.parallel.comm import Comm
 
 
 @pytest.fixture(scope="module")

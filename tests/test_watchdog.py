@@ -9,8 +9,8 @@ import sys
 import pytest
 
 from conftest import describe
-from mpipack import watchdog as wd
-from mpipack.watchdog import BLOCK, STALL_BLOCKS, Watchdog
+from mpipack.stop import watchdog as wd
+from mpipack.stop.watchdog import BLOCK, STALL_BLOCKS, Watchdog
 
 
 def feed(dog, figures, lam=lambda it: 1.0, settled=lambda it: math.inf, start=1):
@@ -150,8 +150,9 @@ def test_a_restart_keeps_the_watchdogs_count(run_mpipack, tmp_path):
 
 def test_fire_al_runs_are_not_stopped_for_slowness():
     """Under fire-al only divergence is watched (its slow phases look like no progress)."""
-    from mpipack import config, solver
-    from mpipack.comm import Comm
+    from mpipack import config
+    from mpipack.engine import solver
+    from mpipack.parallel.comm import Comm
     from mpi4py import MPI
     scene = config.load(None, ["n=50", "output.progress_every=0"])
     s = solver.Solver(scene, Comm(MPI.COMM_SELF))

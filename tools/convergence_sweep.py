@@ -75,7 +75,7 @@ def run_one(n, seed, args):
             "W_over_N2": s["W"] / n ** 2 if "W" in s else None,
             "max_overlap": cert.get("overlap", {}).get("value"),
             "kkt": cert.get("kkt", {}).get("value"),
-            # "fitted" when the certificate's multipliers are the fit's (mpipack/fit.py), and
+            # "fitted" when the certificate's multipliers are the fit's (mpipack/stop/fit.py), and
             # the run's own multipliers' residual
             "kkt_multipliers": cert.get("kkt", {}).get("multipliers"),
             "kkt_run": cert.get("kkt", {}).get("run_value"),

@@ -37,9 +37,11 @@ def main(argv=None):
     if args.every < 1 or args.last < 1 or any(k < 1 for k in steps):
         raise SystemExit("least_kkt_trace: --every, --last and --steps must be positive")
 
-    from mpipack import config, fit, hooks, measures
-    from mpipack import solver as solver_mod
-    from mpipack.comm import Comm
+    from mpipack import config
+    from mpipack.stop import fit, measures
+    from mpipack.engine import hooks
+    from mpipack.engine import solver as solver_mod
+    from mpipack.parallel.comm import Comm
 
     fit.MAX_STEPS = max(fit.MAX_STEPS, max(steps))
     fit.STALL_GAIN = 1e-4  # a long fit stops only when it no longer moves at all

@@ -181,8 +181,9 @@ def method_sets(p, eps):
 
 def run_one(scene_src, base_sets, p, eps, seed, out, max_iter, metrics_every=0):
     """One ``mpipack run`` in this process; returns (exit code, summary dict, metrics rows)."""
-    from .. import cli, runner
-    from ..comm import Comm
+    from mpipack import cli
+    from mpipack.engine import runner
+    from mpipack.parallel.comm import Comm
     sets = list(base_sets) + method_sets(p, eps) + [
         'stop.rule="eps"', f"stop.eps={eps!r}", f"stop.max_iter={max_iter}", "output.progress_every=0",
         "output.snapshots=false", f"output.metrics_every={metrics_every}"]
@@ -518,7 +519,7 @@ QUICK = {"scenes": [("paper-2d", ["n=7"], 5000), ("paper-2d", ["n=100"], 20000)]
 
 def main(args):
     from .. import config
-    from ..check import world_size
+    from mpipack.analysis.check import world_size
     if world_size() > 1:
         print("mpipack: error: start mpipack compare without mpirun (its runs are on one rank each)",
               file=sys.stderr)

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from .. import post
+from mpipack.analysis import post
 
 # Paper, Table 1 (N = 7, 20 standard Gaussian starts): T, sigma^2, orders of (A, W - 3)
 EPS_T1 = ((1e-4, 1e-7), (1e-6, 1e-9), (1e-8, 1e-11))
@@ -77,8 +77,8 @@ def run_single(scene, budget=None, trace=False, comm=None):
     methods, inner iterations for nested ones). Returns a dict of results."""
     from mpi4py import MPI
 
-    from .. import hooks, solver as solver_mod
-    from ..comm import Comm
+    from mpipack.engine import hooks, solver as solver_mod
+    from mpipack.parallel.comm import Comm
     comm = comm or Comm(MPI.COMM_SELF)
     s = solver_mod.Solver(scene, comm)
     s.initialise()
@@ -297,7 +297,8 @@ def fig4_data(comm, cs, seeds, iters):
 
 def large_2d(comm, quick, extra_iters):
     """Section 4.3: N = 2000 DAHA-S to eps = 1e-5, then extra_iters more iterations."""
-    from .. import config, solver as solver_mod
+    from mpipack import config
+    from mpipack.engine import solver as solver_mod
     scene = config.load("paper-2d", ["output.progress_every=0", "stop.watchdog=false"] + (["n=500"] if quick else []))
     t0 = time.perf_counter()
     s, first = solver_mod.run(scene, comm)
@@ -312,7 +313,8 @@ def large_2d(comm, quick, extra_iters):
 
 
 def large_3d(comm, quick):
-    from .. import config, solver as solver_mod
+    from mpipack import config
+    from mpipack.engine import solver as solver_mod
     scene = config.load("paper-3d", ["output.progress_every=0", "stop.watchdog=false"]
                         + (["n=500", "stop.max_iter=2000"] if quick else []))
     t0 = time.perf_counter()
@@ -393,7 +395,7 @@ def _plots(out, f3, f4, f5, f6, l2, l3, prof2, prof3, radii2, radii3, counts3):
 
 
 def main(args):
-    from ..comm import Comm
+    from mpipack.parallel.comm import Comm
     comm = Comm()
     quick = args.quick
     out = args.out or os.path.join("mpipack-out", "paper-quick" if quick else "paper")

@@ -98,7 +98,7 @@ def write_checkpoint(comm, path, n_global, dim, block, scalars, attrs, *, parall
 
     Parameters
     ----------
-    comm : mpipack.comm.Comm (``mpi``, ``rank``, ``size``)
+    comm : mpipack.parallel.comm.Comm (``mpi``, ``rank``, ``size``)
     path : the checkpoint file (replaced atomically)
     n_global, dim : N and b
     block : this rank's gid block (see the module docstring); blocks consecutive in rank order

@@ -90,7 +90,7 @@ class SnapshotWriter:
 
     Parameters
     ----------
-    comm : mpipack.comm.Comm (only ``mpi``, ``rank``, ``size`` are used); collective
+    comm : mpipack.parallel.comm.Comm (only ``mpi``, ``rank``, ``size`` are used); collective
     path : the ``.h5`` file; created, or appended to if it exists
     n_global, dim : N and b
     file_attrs : dict of file attributes (scene as JSON text, parameters, ...); rank 0's are used

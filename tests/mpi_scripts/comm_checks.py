@@ -12,9 +12,10 @@ import traceback
 
 import numpy as np
 
-from mpipack import config, exactsum
-from mpipack.comm import Comm
-from mpipack.solver import Solver
+from mpipack import config
+from mpipack.parallel import exactsum
+from mpipack.parallel.comm import Comm
+from mpipack.engine.solver import Solver
 
 
 def check_reductions(comm):

@@ -10,7 +10,7 @@
     python io_checks.py ckpt-errors PATH...      read each; print one JSON line per rank and file
 
 The io layer uses only ``comm.mpi``, ``comm.rank`` and ``comm.size``: a namespace stands in for
-mpipack.comm.Comm. The reference data are functions of (N, dim, seed) only, imported by the test
+mpipack.parallel.comm.Comm. The reference data are functions of (N, dim, seed) only, imported by the test
 process to check the files.
 """
 

@@ -23,10 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from mpipack import config, domain
-from mpipack.comm import Comm
-from mpipack.hooks import Hook
-from mpipack.solver import Solver, run
+from mpipack import config
+from mpipack.parallel import domain
+from mpipack.parallel.comm import Comm
+from mpipack.engine.hooks import Hook
+from mpipack.engine.solver import Solver, run
 
 
 def log(comm, *args):

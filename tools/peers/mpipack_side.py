@@ -168,11 +168,11 @@ def make_start(n, dim, sigma, seed, path, method="run", ranks=1, timeout=None):
             d = np.load(dump)
             np.savez(path, x=d["x"], diam=d["diam"])
     elif method == "module":
-        # the Gaussian of mpipack.init (a pure function of seed and gid), unit diameters (the
+        # the Gaussian of mpipack.engine.initial (a pure function of seed and gid), unit diameters (the
         # default scene's particles.diameter = 1): the scene `run` would make
         code = (
             "import sys, numpy as np\n"
-            "from mpipack import init\n"
+            "from mpipack.engine import initial as init\n"
             "n, dim, sigma, seed, path = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4]), sys.argv[5]\n"
             "gids = np.arange(n, dtype=np.int64)\n"
             "x = init.gaussian(seed, gids, dim, sigma, np.zeros(dim))\n"

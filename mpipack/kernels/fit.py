@@ -22,8 +22,8 @@ each row sums in partner-gid order: the fit is the same on any number of ranks.
 import numpy as np
 from numba import njit
 
-from . import exactsum
-from .kernels import NONSMOOTH, SMOOTH, coordinates, entry_multiplier, separation
+from mpipack.parallel import exactsum
+from mpipack.kernels.daha import NONSMOOTH, SMOOTH, coordinates, entry_multiplier, separation
 
 # exact rows: sum_i |r_i|^2 and the restart test's sum over entries of g (m_next - m_prev)
 # (every pair counted twice, in both of its rows)

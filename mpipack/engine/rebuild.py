@@ -13,10 +13,11 @@ d_ij + skin and every pair with lambda > 0, summed in partner-gid order.
 
 import numpy as np
 
-from . import comm as comm_mod
-from . import domain, init, neighbors
-from .state import gather_rows
-from .timers import BALANCE, BORDERS, EXCHANGE, ROWS
+from mpipack.parallel import comm as comm_mod
+from mpipack.parallel import domain, neighbors
+from mpipack.engine import initial as init
+from mpipack.parallel.state import gather_rows
+from mpipack.engine.timers import BALANCE, BORDERS, EXCHANGE, ROWS
 
 
 class TooDenseError(RuntimeError):

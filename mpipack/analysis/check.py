@@ -269,7 +269,7 @@ def lattice_dual_gain(n, dim):
     m = key[0]
     if m < 2:
         return 0.0
-    from .init import lattice_points
+    from mpipack.engine.initial import lattice_points
     x = lattice_points(m, dim, 1.0)
     i_list, j_list = [], []
     for lo in range(0, m, 256):  # pairs at distance 1, in blocks (m <= 2000)
@@ -373,7 +373,7 @@ def cluster(n, dim, form, d=1.0):
     key = (n, dim, form, d)
     if key in _PATCH:
         return _PATCH[key]
-    from .init import lattice_points
+    from mpipack.engine.initial import lattice_points
     x = lattice_points(n, dim, d)
     x = x - x.mean(axis=0)
     dist = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(-1))
@@ -470,7 +470,7 @@ def two_spheres(scene):
     """Two free spheres (exact for N = 2): the ODE and the discrete map."""
     m = scene.method
     if scene.n == 2:
-        from .init import scene_diameters
+        from mpipack.engine.initial import scene_diameters
         dd = scene_diameters(scene, np.arange(2, dtype=np.int64))
         d = float(0.5 * (dd[0] + dd[1]))
     else:
@@ -563,7 +563,7 @@ def _is_stable(scene):
 # ---- the start and the memory ------------------------------------------------------------------------
 def pairs_within(scene, r):
     """Expected number of pairs of the start closer than r (see the module docstring)."""
-    from . import init
+    from mpipack.engine import initial as init
     n, b = scene.n, scene.dim
     total = 0.5 * n * (n - 1)
     kind = scene.init.kind
@@ -589,9 +589,9 @@ def _lattice_cell_measure(b, s):
 def start_and_memory(scene, ranks, budget_bytes=None):
     """Overlapping pairs of the start, pair-row entries and memory per rank, and the spread
     that would fit (Gaussian starts)."""
-    from . import init
-    from .rebuild import BYTES_PER_ENTRY_PEAK
-    from .solver import BYTES_PER_PARTICLE, _available_memory_bytes
+    from mpipack.engine import initial as init
+    from mpipack.engine.rebuild import BYTES_PER_ENTRY_PEAK
+    from mpipack.engine.solver import BYTES_PER_PARTICLE, _available_memory_bytes
     p = scene.particles
     d_mean = 0.5 * (p.diameter + p.d_max)
     cut = p.d_max + scene.neighbor.skin * p.d_max  # rows: every pair within d_kl + skin
@@ -693,7 +693,7 @@ def report_lines(scene, ranks):
                  "the stiffest row of that iteration (FIRE's dt <= sqrt(1/k_rel), k_rel the reduced "
                  "largest Gershgorin row of the augmented Lagrangian, momentum restarted when the power "
                  "turns negative); the explosion of a dense start uses the gamma term's CFL bound at the "
-                 "packing law's multipliers (mpipack/schedule.py).")
+                 "packing law's multipliers (mpipack/methods/fire_al.py).")
         L.append(f"Verdict: STABLE by construction ({tag}, N = {scene.n}, dim {scene.dim}; schedule fire-al)")
         start, mem = _start_lines(scene, ranks)
         return stable, L + start, mem
@@ -742,7 +742,7 @@ def report_lines(scene, ranks):
                      f"still certify (N = 100 NS: c = 1, 0.5 yes, 0.2 no; N = 7: c = 1 yes, 0.5 no), N = 2000 "
                      f"with no c < 2 tried (research). Not part of the verdict")
         L.append("  the packed-state figures are estimates calibrated on packings made by mpipack run (see "
-                 "`mpipack.check`); two free spheres bound nothing for N > 2")
+                 "`mpipack.analysis.check`); two free spheres bound nothing for N > 2")
     margin = _margin_lines(scene, stable)
     basis = ("two free spheres, the scheme as it runs" if scene.n == 2 else
              "the scheme linearised at the close-packed cluster" if rep["packed"] is None and scene.n > 2 else
@@ -922,7 +922,7 @@ def world_size():
 
 def main(args, rank=0):
     """``mpipack check``: returns the exit code; prints on rank 0 only."""
-    from . import config
+    from mpipack import config
     try:
         scene = config.load(args.scene, args.overrides, args.seed)
     except config.SceneError as e:
@@ -939,7 +939,7 @@ def main(args, rank=0):
         print(scene_toml(scene.as_dict()))
         print()
         print("\n".join(lines), flush=True)
-    from .solver import BYTES_PER_PARTICLE
+    from mpipack.engine.solver import BYTES_PER_PARTICLE
     if mem["particles_bytes"] > mem["budget_bytes"]:
         if rank == 0:
             print(f"mpipack: error: n = {scene.n} spheres need about {_gib(mem['particles_bytes'])} per rank for the "

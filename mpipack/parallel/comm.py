@@ -19,8 +19,8 @@ the loop: every verb has a size-1 short cut (the solver does not even call excha
 import numpy as np
 from mpi4py import MPI
 
-from . import neighbors
-from .state import gather_rows
+from mpipack.parallel import neighbors
+from mpipack.parallel.state import gather_rows
 
 _FUSED_OP = None
 

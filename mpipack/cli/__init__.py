@@ -9,7 +9,7 @@ import argparse
 import os
 import sys
 
-from .runner import EXIT_INPUT, EXIT_OK
+from mpipack.engine.runner import EXIT_INPUT, EXIT_OK
 
 
 def _world_rank():
@@ -117,7 +117,7 @@ def _parser():
 def main(argv=None):
     args = _parser().parse_args(argv)
     if args.command == "scenes":
-        from . import config
+        from mpipack import config
         for name in config.builtin_names():
             print(name)
         return EXIT_OK
@@ -126,10 +126,10 @@ def main(argv=None):
             if _world_rank() == 0:
                 print(f"mpipack: error: --out: {args.out} exists and is not a folder", file=sys.stderr)
             return EXIT_INPUT
-        from .experiments import paper
+        from mpipack.experiments import paper
         return paper.main(args)
     if args.command == "check":
-        from . import check
+        from mpipack.analysis import check
         return check.main(args, _world_rank())
     if args.command in ("suite", "compare"):
         if args.out is not None and os.path.exists(args.out) and not os.path.isdir(args.out):
@@ -137,24 +137,24 @@ def main(argv=None):
                 print(f"mpipack: error: --out: {args.out} exists and is not a folder", file=sys.stderr)
             return EXIT_INPUT
         if args.command == "suite":
-            from . import suite
+            from mpipack.experiments import suite
             return suite.main(args)
-        from .experiments import compare
+        from mpipack.experiments import compare
         return compare.main(args)
     if args.command == "bench":
-        from . import bench
+        from mpipack.experiments import bench
         return bench.main(args)
-    from .comm import Comm
+    from mpipack.parallel.comm import Comm
     comm = Comm()
     if args.command == "vtk":
         return vtk_command(comm, args)
-    from . import runner
+    from mpipack.engine import runner
     return runner.execute(comm, args)
 
 
 def vtk_command(comm, args):
-    from .io.vtk import convert_run
-    from .runner import fail
+    from mpipack.io.vtk import convert_run
+    from mpipack.engine.runner import fail
     try:
         files = convert_run(comm, args.run_dir)
     except (FileNotFoundError, ValueError, OSError) as e:

@@ -6,7 +6,8 @@ import numpy as np
 
 def density_profile(x, diam, radii):
     """phi(R): covered fraction of the ball B(Xbar, R) for each R (serial, gathered data)."""
-    from . import exactsum, metrics
+    from mpipack.parallel import exactsum
+    from mpipack.kernels import metrics
     xbar = x.mean(axis=0)
     acc = exactsum.new_accumulator(len(radii))
     metrics.covered_measure(np.ascontiguousarray(x), diam, x.shape[0], xbar, np.asarray(radii, float), acc)
@@ -15,7 +16,7 @@ def density_profile(x, diam, radii):
 
 def neighbour_counts(x, diam, factor=1.1):
     """Number of neighbours of each sphere with centre distance < factor * d_ij."""
-    from . import neighbors
+    from mpipack.parallel import neighbors
     n = x.shape[0]
     x = np.ascontiguousarray(x)
     off, pj, _, _ = neighbors.build_rows(x, n, n, np.arange(n, dtype=np.int64), diam,

@@ -17,8 +17,9 @@ import json
 import os
 import time
 
-from . import __version__, measures
-from .hooks import Hook
+from mpipack import __version__
+from mpipack.stop import measures
+from mpipack.engine.hooks import Hook
 
 SNAPSHOT_FILE = "snapshots.h5"
 CHECKPOINT_FILE = "checkpoint.h5"
@@ -61,7 +62,7 @@ class Snapshots:
     def write(self, solver, iteration, elapsed, figures):
         if self.last_iteration == iteration:
             return
-        from .io.snapshots import SnapshotWriter
+        from mpipack.io.snapshots import SnapshotWriter
         t0 = time.perf_counter()
         if self.writer is None:
             self.writer = SnapshotWriter(self.comm, self.path, self.scene.n, self.scene.dim,
@@ -97,7 +98,7 @@ class Checkpoints:
 
     def write(self, solver):
         """Collective. Returns the seconds the write took."""
-        from .io.checkpoint import write_checkpoint
+        from mpipack.io.checkpoint import write_checkpoint
         if self.last_iteration == solver.state.iteration:
             return 0.0
         b = solver.export_state()
@@ -119,8 +120,8 @@ class Checkpoints:
 def read_state(comm, path):
     """(BlockState of this rank, scene table, file attributes) from a checkpoint file or a run
     folder holding checkpoint.h5. Raises io.checkpoint.CheckpointError (one line)."""
-    from .io.checkpoint import CheckpointError, read_checkpoint
-    from .state import BlockState
+    from mpipack.io.checkpoint import CheckpointError, read_checkpoint
+    from mpipack.parallel.state import BlockState
     if os.path.isdir(path):
         path = os.path.join(path, CHECKPOINT_FILE)
     block, scalars, attrs = read_checkpoint(comm, path)

@@ -29,7 +29,7 @@ holds.
 import collections
 import math
 
-from . import measures
+from mpipack.stop import measures
 
 MIN_WINDOW = 1
 # the multiplier fits of the checks cost at most FIT_SHARE of the run's iterations, a fit step

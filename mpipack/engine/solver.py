@@ -41,16 +41,20 @@ import time
 
 import numpy as np
 
-from . import comm as comm_mod
-from . import domain, exactsum, hooks as hooks_mod, init, kernels, kernels_qn, measures, neighbors, nested
-from . import qn
-from . import rebuild as rebuild_mod
-from .certify import Certifier
-from .reduction import Reduction
-from .state import State
-from .timers import FORWARD, HOOKS, REDUCE, STEP, PhaseTimers, format_report, process_age_seconds
-from . import watchdog as watchdog_mod
-from .watchdog import Watchdog
+from mpipack.parallel import comm as comm_mod
+from mpipack.parallel import domain, exactsum, neighbors
+from mpipack.engine import hooks as hooks_mod, initial as init
+from mpipack.kernels import daha as kernels, lbfgs as kernels_qn
+from mpipack.stop import measures
+from mpipack.methods import nested
+from mpipack.methods import lbfgs as qn
+from mpipack.engine import rebuild as rebuild_mod
+from mpipack.stop.certificate import Certifier
+from mpipack.parallel.reduction import Reduction
+from mpipack.parallel.state import State
+from mpipack.engine.timers import (FORWARD, HOOKS, REDUCE, STEP, PhaseTimers, format_report, process_age_seconds)
+from mpipack.stop import watchdog as watchdog_mod
+from mpipack.stop.watchdog import Watchdog
 
 
 class NumericalError(RuntimeError):
@@ -114,7 +118,8 @@ class Solver:
             self.coeffs = kernels.nested_coefficients(m.name, m.alpha, m.tau)
             self._kernel = kernels.nested_step(m.name, m.form)
         elif m.schedule == "fire-al":
-            from . import kernels_fire, schedule
+            from mpipack.kernels import fire as kernels_fire
+            from mpipack.methods import fire_al as schedule
             self.schedule = schedule.FireAL(self.n, self.dim, init.mean_diameter(scene), m.form,
                                              overlap_tol=scene.stop.overlap)
             self._kernel = kernels_fire.fire_al_step(m.form, self.dim)
@@ -624,7 +629,7 @@ def make_watchdog(solver, scene):
     stop = scene.stop
     if not stop.watchdog:
         return None
-    from .schedule import packing_law
+    from mpipack.methods.fire_al import packing_law
     law = packing_law(solver.n, solver.dim, init.mean_diameter(scene), scene.method.form)
     return Watchdog(solver.n, solver.r_natural, law["lam_bar"] / solver.kkt_lambda_scale, stop.overlap,
                     stall=solver.schedule is None and not (stop.rule == "eps" and stop.eps == 0),

@@ -24,7 +24,7 @@ collective.
 
 import numpy as np
 
-from . import exactsum
+from mpipack.parallel import exactsum
 
 _ROW = exactsum.NBINS + 1
 

@@ -250,7 +250,8 @@ def stability_edges():
     """Parameters just inside and just outside the stability region from ``mpipack check``'s
     analysis: two spheres DAHA-S (alpha = 0.35, gamma = sqrt(alpha beta), the exact scheme), and
     seven DAHA-S discs (alpha = 0.04, beta = 0.15, the cluster's scheme) in gamma."""
-    from . import check, config
+    from mpipack.analysis import check
+    from mpipack import config
     two = config.load("two-spheres", ["method.form=\"S\"", "method.alpha=0.35", "method.beta=1.4"])
     b_edge = check._edge(lambda b: check.verdict(check.with_param(two, "beta", b))[0], 1.4, 2.0, bisect=30)
     seven = config.load("paper-2d", ["n=7", "method.form=\"S\"", "method.alpha=0.04", "method.beta=0.15",
@@ -415,7 +416,7 @@ def notes(results):
 
 def main(args):
     """``mpipack suite``: returns 0 when every case passes, 1 otherwise."""
-    from .check import world_size
+    from mpipack.analysis.check import world_size
     if world_size() > 1:
         print("mpipack: error: start mpipack suite without mpirun: it launches its own", file=sys.stderr)
         return EXIT_INPUT

@@ -95,7 +95,7 @@ def metrics_recorder(scene, comm, path, every, resume_after=None):
     relative to the contact forces, ``measures.measure``). With ``resume_after`` (a restart
     from that iteration) the file keeps its rows up to that iteration and continues. Returns a
     Hook."""
-    from . import measures
+    from mpipack.stop import measures
     optimum = scene.output.w_optimum
     state = {"last": None}
     if comm.rank == 0:

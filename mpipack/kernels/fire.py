@@ -38,8 +38,8 @@ Reduced figures (block "step" of the exact sums, block "step" of the maxima):
 import numpy as np
 from numba import njit
 
-from . import exactsum
-from .kernels import NONSMOOTH, SMOOTH, coordinates, separation
+from mpipack.parallel import exactsum
+from mpipack.kernels.daha import NONSMOOTH, SMOOTH, coordinates, separation
 
 # exact rows after the b rows of sum X^{n+1}
 ACC_DX2, ACC_XX2, ACC_POWER, ACC_FORCE2 = 0, 1, 2, 3

@@ -30,7 +30,7 @@ passes took 25% longer at 2D N = 20000, so it keeps per-value adds.)
 import numpy as np
 from numba import njit
 
-from . import exactsum
+from mpipack.parallel import exactsum
 
 # a stored step this close to the cap was shortened to it
 _AT_CAP = 1.0 - 1e-9

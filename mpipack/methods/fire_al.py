@@ -85,7 +85,7 @@ step behind, so that between two steps a converged inner solve could not be cert
 
 import math
 
-from . import qn
+from mpipack.methods import lbfgs as qn
 
 # explosion
 THETA, KAPPA, Q_EXPLODE, OV_START, OV_END = 0.3, 8.0, 100.0, 0.5, 0.1

@@ -8,8 +8,9 @@ import math
 
 import numpy as np
 
-from . import kernels, neighbors
-from .reduction import Reduction
+from mpipack.kernels import daha as kernels
+from mpipack.parallel import neighbors
+from mpipack.parallel.reduction import Reduction
 
 
 def outer_step(s):

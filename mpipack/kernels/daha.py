@@ -32,7 +32,8 @@ result independent of how particles are distributed over ranks.
 import numpy as np
 from numba import njit
 
-from . import exactsum, metrics
+from mpipack.parallel import exactsum
+from mpipack.kernels import metrics
 
 SMOOTH = 0
 NONSMOOTH = 1

@@ -27,7 +27,7 @@ import signal
 import sys
 import time
 
-from . import __version__
+from mpipack import __version__
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_NUMERICAL, EXIT_NOT_CONVERGED, EXIT_CHECKPOINTED = 0, 1, 2, 3, 4, 5
 # stop reasons of a run that reached its bound before its certificate (exit 4, checkpointed)
@@ -59,11 +59,11 @@ def parse_walltime(text):
 def resolve_scene(comm, args):
     """(scene, restart BlockState or None). A restart takes its scene from the checkpoint;
     a scene or --set given beside it may change only config.RESTART_MAY_CHANGE."""
-    from . import config
+    from mpipack import config
     if not args.restart:
         return config.load(args.scene, args.overrides, args.seed), None
-    from .io.checkpoint import CheckpointError
-    from .output import read_state
+    from mpipack.io.checkpoint import CheckpointError
+    from mpipack.engine.output import read_state
     try:
         state, table, _ = read_state(comm, args.restart)
     except CheckpointError as e:
@@ -106,7 +106,7 @@ def prepare_outputs(out, dump):
 def install_signal_handlers():
     """SIGTERM, SIGUSR1 (Slurm's --signal) and SIGINT ask every rank to checkpoint and stop at
     the end of the current iteration; a second SIGINT stops at once (exit 130, one line)."""
-    from .solver import request_stop, stop_requested
+    from mpipack.engine.solver import request_stop, stop_requested
 
     def handler(signum, frame):
         if signum == signal.SIGINT and stop_requested():
@@ -123,8 +123,8 @@ def walltime_hook(comm, limit, checkpoints, n, dim):
     twice the last checkpoint's write time (before the first one, 0.25 s plus the state's size
     at 50 MB/s), 10 iterations and 1 s. Every input is the same on every rank: a collective
     decision."""
-    from .hooks import STOP, Hook
-    from .timers import process_age_seconds
+    from mpipack.engine.hooks import STOP, Hook
+    from mpipack.engine.timers import process_age_seconds
     first_estimate = 0.25 + n * (3 * dim + 2) * 8 / 50e6
     state = {"offset": None, "t": 0.0, "it": 0, "per_it": 0.0}
 
@@ -205,7 +205,7 @@ def base_summary(comm, scene, args):
 def execute(comm, args):
     """One ``mpipack run`` on every rank of ``comm``; returns the exit code (the same on every
     rank). Prints on rank 0 only."""
-    from . import config
+    from mpipack import config
     rank0 = comm.rank == 0
     err, scene, state, walltime = None, None, None, None
     try:
@@ -251,9 +251,9 @@ def fail(comm, code, message):
 
 
 def _execute(comm, args, scene, state, out, walltime):
-    from . import hooks as hooks_mod
-    from . import output
-    from . import solver as solver_mod
+    from mpipack.engine import hooks as hooks_mod
+    from mpipack.engine import output
+    from mpipack.engine import solver as solver_mod
     rank0 = comm.rank == 0
     m = scene.method
     every = scene.output.progress_every
@@ -332,7 +332,7 @@ def _execute(comm, args, scene, state, out, walltime):
     if rank0 and not args.quiet:
         print_result(scene, res, wall, path, code, checkpoints)
         if args.profile:
-            from .solver import profile_lines
+            from mpipack.engine.solver import profile_lines
             print("mpipack: time per phase of the loop", flush=True)
             for line in profile_lines(res):
                 print("  " + line, flush=True)
@@ -350,7 +350,7 @@ def save_dump(path, out, data):
 
 
 def result_summary(scene, comm, res, wall, profile):
-    from .cli_text import density_valid
+    from mpipack.engine.report import density_valid
     out = {
         "iterations": res["iterations"], "converged": res["converged"],
         "stop_reason": res["stop_reason"], "certificate": res["certificate"],
@@ -394,7 +394,7 @@ def exit_code(scene, res):
 
 
 def print_result(scene, res, wall, summary_path, code, checkpoints):
-    from .cli_text import certificate_line, density_line, residual_line, verdict
+    from mpipack.engine.report import certificate_line, density_line, residual_line, verdict
     lines = [f"mpipack: {verdict(scene, res)} after {res['iterations']} iterations in {wall:.2f} s "
              f"({res['particle_iterations_per_second']:.3g} particle-iterations/s)",
              f"  {certificate_line(res['certificate'])}",

@@ -9,7 +9,7 @@ import math
 
 from numba import njit
 
-from . import exactsum
+from mpipack.parallel import exactsum
 
 
 @njit(cache=True, inline="always")

@@ -52,8 +52,9 @@ def bench_case(comm, dim, n, form="S", iters=None, repeats=3, spacing=0.99, seed
     (about 2 s each) unless ``iters`` is given, then ``repeats`` timed loops, each between two
     barriers; the hook stops the run after the last one.
     """
-    from . import config, hooks
-    from .solver import run
+    from mpipack import config
+    from mpipack.engine import hooks
+    from mpipack.engine.solver import run
 
     p = PARAMS
     overrides = [f"dim={dim}", f"n={n}", "init.kind=lattice", f"init.spacing={spacing}",
@@ -117,7 +118,7 @@ def bench_case(comm, dim, n, form="S", iters=None, repeats=3, spacing=0.99, seed
 
 
 def main(args):
-    from .comm import Comm
+    from mpipack.parallel.comm import Comm
     comm = Comm()
     dims = args.dim or [2, 3]
     ns = [int(v) for v in (args.n or [1e4, 1e5, 1e6])]

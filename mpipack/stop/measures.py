@@ -7,10 +7,11 @@ import math
 
 import numpy as np
 
-from . import comm as comm_mod
-from . import kernels, metrics, neighbors
-from .reduction import Reduction
-from .state import BlockState
+from mpipack.parallel import comm as comm_mod
+from mpipack.kernels import daha as kernels, metrics
+from mpipack.parallel import neighbors
+from mpipack.parallel.reduction import Reduction
+from mpipack.parallel.state import BlockState
 
 
 def measure(s, finalize=False, empty=False, overlap_a=True):
@@ -98,7 +99,7 @@ def best_kkt(s, fig, target, max_steps=None):
     (``fit.best_kkt``), starting from the run's own; fig: this X's ``measure`` figures;
     max_steps: at most this many fit steps (None: the fit's own bound). Returns (residual,
     fit steps). Collective; changes nothing in the state."""
-    from . import fit
+    from mpipack.stop import fit
     mode, pen, floor = multiplier_mode(s)
     return fit.best_kkt(s, mode, pen, floor, 2.0 * fig["W"], target, max_steps)
 

@@ -36,9 +36,9 @@ import math
 
 import numpy as np
 
-from . import comm as comm_mod
-from . import kernels_fit
-from .reduction import Reduction
+from mpipack.parallel import comm as comm_mod
+from mpipack.kernels import fit as kernels_fit
+from mpipack.parallel.reduction import Reduction
 
 MAX_STEPS = 2000  # the fit's steps at most
 # ... and it stops once its least residual has not fallen by STALL_GAIN over STALL_STEPS steps

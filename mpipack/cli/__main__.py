@@ -1,0 +1,5 @@
+import sys
+
+from mpipack.cli import main
+
+sys.exit(main())
