@@ -1,4 +1,8 @@
-"""mpipack: MPI-parallel sphere packing with the damped Arrow-Hurwicz algorithm."""
+"""mpipack: MPI-parallel sphere packing with the damped Arrow-Hurwicz algorithm.
+
+The library API (``api``): ``run``, ``load_scene``, ``read_snapshot`` and their ``Result``,
+``Snapshot``. Importing the package imports neither numpy, numba nor mpi4py.
+"""
 
 import hashlib
 import os
@@ -29,3 +33,8 @@ if "NUMBA_CACHE_DIR" not in os.environ:
         os.environ["NUMBA_CACHE_DIR"] = _numba_cache_dir()
     except OSError:
         pass
+
+
+from mpipack.api import Result, Snapshot, load_scene, read_snapshot, run  # noqa: E402
+
+__all__ = ["run", "load_scene", "read_snapshot", "Result", "Snapshot", "__version__"]

@@ -246,10 +246,11 @@ def _freeze(table):
     return Scene(**kw)
 
 
-def load(source=None, overrides=(), seed=None, base=None):
+def load(source=None, overrides=(), seed=None, base=None, settings=None):
     """Scene from a file or built-in name (default: the built-in 'default'), with
-    ``overrides`` as 'dotted.key=value' strings and an optional seed, validated and frozen.
-    With ``base`` (a scene table, e.g. a checkpoint's) and no source, the overrides apply to it."""
+    ``overrides`` as 'dotted.key=value' strings, ``settings`` as {dotted key: value} and an
+    optional seed, validated and frozen. With ``base`` (a scene table, e.g. a checkpoint's)
+    and no source, the overrides apply to it."""
     scene = copy.deepcopy(DEFAULTS)
     if base is not None and source is None:
         _merge(scene, base)
@@ -262,6 +263,11 @@ def load(source=None, overrides=(), seed=None, base=None):
         parts = key.strip().split(".")
         nested = _parse_value(text.strip())
         for p in reversed(parts):
+            nested = {p: nested}
+        _merge(scene, nested)
+    for key, value in (settings or {}).items():
+        nested = value
+        for p in reversed(str(key).strip().split(".")):
             nested = {p: nested}
         _merge(scene, nested)
     if seed is not None:

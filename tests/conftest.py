@@ -1,7 +1,7 @@
 """Shared helpers: run mpipack (or a test script) under ``mpirun`` with a self-contained env.
 
 The tests do not rely on the caller having sourced tools/env.sh: the environment for every
-subprocess is `mpipack.suite.mpi_env`: os.environ plus what Open MPI needs to run as root and with
+subprocess is `mpipack.parallel.launcher.mpi_env`: os.environ plus what Open MPI needs to run as root and with
 more ranks than cores. Every subprocess has a timeout, so a hang fails instead of blocking.
 """
 
@@ -26,7 +26,7 @@ TIMEOUT = 300
 
 # the environment of every subprocess: the one `mpipack suite` builds for its runs (root,
 # oversubscription, yield when idle, this checkout first on PYTHONPATH)
-from mpipack.experiments.suite import mpi_env
+from mpipack.parallel.launcher import mpi_env
 
 
 def mpirun(n, args, cwd, timeout=TIMEOUT):
@@ -104,12 +104,12 @@ def assert_bitwise_equal(ref, other, what):
 
 
 def step_each(s, n, fn):
-    """Advance Solver ``s`` by n iterations through the one loop (solver.run, stop rule: n more
+    """Advance Solver ``s`` by n iterations through the one loop (engine.loop.run, stop rule: n more
     iterations), calling fn(figures) after each. Returns run's result dict.
 
     Tests observe the trajectory through a hook, as any other user of the loop does."""
-    from mpipack.engine import hooks, solver as solver_mod
+    from mpipack.engine import hooks, loop
     scene = s.scene.replace(stop={"eps": 0.0, "max_iter": s.state.iteration + n})
-    _, res = solver_mod.run(scene, s.comm, hooks=[hooks.Hook(lambda ctx: fn(ctx.figures), every=1)],
+    _, res = loop.run(scene, s.comm, hooks=[hooks.Hook(lambda ctx: fn(ctx.figures), every=1)],
                             solver=s)
     return res

@@ -73,7 +73,7 @@ def test_only_the_scene_kernels_are_compiled(tmp_path, sets, want, unwanted):
 def test_one_rank_never_exchanges_ghosts(monkeypatch):
     from mpipack.parallel import comm as comm_mod
     from mpipack import config
-    from mpipack.engine import solver
+    from mpipack.engine import loop, solver
 
     def forbidden(*a, **k):
         raise AssertionError("ghost exchange called on one rank")
@@ -81,30 +81,30 @@ def test_one_rank_never_exchanges_ghosts(monkeypatch):
     for verb in ("exchange", "borders", "forward", "_send_copies"):
         monkeypatch.setattr(comm_mod, verb, forbidden)
     scene = config.load("paper-2d", ["n=300", "stop.eps=0", "stop.max_iter=200"])
-    s, res = solver.run(scene, comm_mod.Comm())
+    s, res = loop.run(scene, comm_mod.Comm())
     assert res["rebuilds"] > 1 and res["iterations"] == 200
 
 
 def test_metrics_pass_runs_only_at_the_end():
     from mpipack import config
-    from mpipack.engine import solver
+    from mpipack.engine import loop, solver
     from mpipack.parallel.comm import Comm
     scene = config.load("paper-2d", ["n=100", "stop.eps=0", "stop.max_iter=100"])
     s = solver.Solver(scene, Comm())
     s.initialise()
     calls = []
-    kernel = s._metrics_kernel
-    s._metrics_kernel = lambda *a: calls.append(1) or kernel(*a)
-    solver.run(scene, s.comm, solver=s)
+    kernel = s.metrics_kernel
+    s.metrics_kernel = lambda *a: calls.append(1) or kernel(*a)
+    loop.run(scene, s.comm, solver=s)
     assert len(calls) == 1
 
 
 def test_no_other_module_iterates_the_solver():
-    """The loop lives in solver.run: no other source file calls step() (tests included)."""
+    """The loop lives in engine.loop.run: no other source file calls step() (tests included)."""
     offenders = []
     for path in list((REPO / "mpipack").rglob("*.py")) + list((REPO / "tests").rglob("*.py")):
         text = path.read_text()
-        if path.name in ("solver.py", "test_footprint.py"):
+        if path.name in ("loop.py", "test_footprint.py"):
             continue
         if ".step()" in text:
             offenders.append(str(path.relative_to(REPO)))

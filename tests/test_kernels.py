@@ -14,6 +14,7 @@ import pytest
 
 from mpipack.parallel import exactsum, neighbors
 from mpipack.kernels import daha as kernels
+from mpipack.methods import fixed
 
 # ---------------------------------------------------------------------------------------------
 # reference implementation
@@ -141,7 +142,7 @@ def test_kernel_matches_reference(dim, form, pname, update_lambda):
     x_ref, lam_ref = ref_step(p["method"], form, x, x_prev, diam, lam_prev, p["alpha"], p["beta"],
                               p["gamma"], p["c"], update_lambda, xbar=xbar)
 
-    coeffs = kernels.coefficients(p["method"], p["alpha"], p["beta"], p["gamma"], p["c"])
+    coeffs = fixed.paper_coefficients(p["method"], p["alpha"], p["beta"], p["gamma"], p["c"])
     offsets, pair_j = rows_complete(n, n, gid)
     owner = np.repeat(np.arange(n), np.diff(offsets))
     pair_lambda = lam_prev[owner, pair_j].copy()
@@ -199,7 +200,7 @@ def test_kernel_with_ghosts_and_verlet_rows(dim, form):
     pair_lambda[:] = lam_prev[owner, pair_j]
     assert np.count_nonzero(pair_lambda) == np.count_nonzero(lam_prev[:n_local]), \
         "every overlapping pair of a local particle must be in its row"
-    coeffs = kernels.coefficients("daha", p["alpha"], p["beta"], p["gamma"], p["c"])
+    coeffs = fixed.paper_coefficients("daha", p["alpha"], p["beta"], p["gamma"], p["c"])
     x_new, _, _, _ = run_kernel(form, x, x_prev, diam, offsets, pair_j, pair_lambda, xbar,
                                 coeffs, p["beta"], True, n_local)
     assert np.allclose(x_new[:n_local], x_ref[:n_local], rtol=1e-12, atol=1e-12)
@@ -210,13 +211,13 @@ def test_kernel_with_ghosts_and_verlet_rows(dim, form):
 def test_coefficients_follow_the_paper():
     alpha, beta, gamma, c = 0.3, 1.4, 0.5, 1.2
     h = 1 + c / 2
-    a = kernels.coefficients("daha", alpha, beta, gamma, c)
+    a = fixed.paper_coefficients("daha", alpha, beta, gamma, c)
     assert np.allclose(a, (2 / h, -(1 - c / 2) / h, alpha ** 2 / h, gamma ** 2 / h), rtol=1e-15)
     # c = 2: the one-step method, X^{n-1} drops out
-    assert kernels.coefficients("daha", alpha, beta, gamma, 2.0)[1] == 0.0
-    assert kernels.coefficients("aha", alpha, beta, gamma, c) == (1.0, 0.0, alpha, 0.0)
+    assert fixed.paper_coefficients("daha", alpha, beta, gamma, 2.0)[1] == 0.0
+    assert fixed.paper_coefficients("aha", alpha, beta, gamma, c) == (1.0, 0.0, alpha, 0.0)
     with pytest.raises(ValueError):
-        kernels.coefficients("nap", alpha, beta, gamma, c)
+        fixed.paper_coefficients("nap", alpha, beta, gamma, c)
 
 
 def test_two_step_trajectory_matches_reference():
@@ -230,7 +231,7 @@ def test_two_step_trajectory_matches_reference():
     offsets, pair_j = rows_complete(n, n, gid)
     owner = np.repeat(np.arange(n), np.diff(offsets))
     pair_lambda = np.zeros(pair_j.shape[0])
-    coeffs = kernels.coefficients("daha", p["alpha"], p["beta"], p["gamma"], p["c"])
+    coeffs = fixed.paper_coefficients("daha", p["alpha"], p["beta"], p["gamma"], p["c"])
     rx, rxp, rlam = x.copy(), x_prev.copy(), np.zeros((n, n))
     kx, kxp = x.copy(), x_prev.copy()
     for it in range(5):

@@ -33,6 +33,7 @@ from mpipack.parallel import exactsum, neighbors
 from mpipack.kernels import daha as kernels
 from mpipack.engine import solver
 from mpipack.parallel.comm import Comm
+from mpipack.methods import nested
 
 RUN_TIMEOUT = 180  # seconds, per mpirun; healthy runs below take a few seconds
 
@@ -192,7 +193,7 @@ def nested_setup(rng, n, dim, form):
 def run_nested_kernel(method, form, y, xp, diam, offsets, pair_j, pair_lambda, xbar, p, update,
                       n_local):
     kern = kernels.nested_step(method, form)
-    cy, cp, cw, cf = kernels.nested_coefficients(method, p["alpha"], p["tau"])
+    cy, cp, cw, cf = nested.nested_coefficients(method, p["alpha"], p["tau"])
     b = y.shape[1]
     y_new = np.full_like(y, np.nan)
     acc = exactsum.new_accumulator(b + 2)
@@ -287,11 +288,11 @@ def test_inner_kernel_with_ghosts(form, method):
 
 
 def test_nested_coefficients():
-    assert kernels.nested_coefficients("nap", 0.3, 0.2) == (1.0, 0.0, 0.3, 0.3)
-    cy, cp, cw, cf = kernels.nested_coefficients("nav", 0.3, 0.2)
+    assert nested.nested_coefficients("nap", 0.3, 0.2) == (1.0, 0.0, 0.3, 0.3)
+    cy, cp, cw, cf = nested.nested_coefficients("nav", 0.3, 0.2)
     assert np.allclose((cy, cp, cw, cf), (0.7, 0.3, 0.3 * 0.2, 0.3 * 0.2 ** 2), rtol=1e-15)
     with pytest.raises(ValueError):
-        kernels.nested_coefficients("daha", 0.3, 0.2)
+        nested.nested_coefficients("daha", 0.3, 0.2)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -40,7 +40,7 @@ def force_pairs(summary, d):
     """Pairs that carry a force multiplier of the fire-al certificate, from a dump (brute force):
     mu = max(0, lambda + pen max(lambda, floor) phi / d^p) > 0 and a gap within the overlap
     tolerance."""
-    from mpipack.methods import fire_al as schedule
+    from mpipack.methods import fire_al_schedule as schedule
     x, diam, n = d["x"], d["diam"], d["x"].shape[0]
     form = summary["form"]
     law = schedule.packing_law(n, summary["dim"], 0.5 * (diam.min() + diam.max()), form)
@@ -109,7 +109,7 @@ def test_same_bits_on_1_2_3_ranks(run_mpipack, name):
     check_dump_consistency(s1, d1)
     assert d1["pairs_gid"].shape[0] > 50, "test set-up: want many contacts at the end"
     if name == "3d-fire-al-penalty":
-        from mpipack.methods import fire_al as schedule
+        from mpipack.methods import fire_al_schedule as schedule
         assert s1["schedule"]["penalty_factor"] > schedule.C_B[3], s1["schedule"]
         assert s1["schedule"]["lbfgs_from"] < 2000, s1["schedule"]
     for P in (2, 3):

@@ -5,12 +5,12 @@ import math
 
 import pytest
 
-from mpipack.methods import fire_al as schedule
+from mpipack.methods import fire_al_schedule as schedule
 
 
 def fire_schedule(overlap_tol=1e-3, dim=2):
     """An N = 2000 schedule whose start needs no explosion: phase "fire" after one figure."""
-    sch = schedule.FireAL(2000, dim, 1.0, "S", overlap_tol=overlap_tol)
+    sch = schedule.FireALSchedule(2000, dim, 1.0, "S", overlap_tol=overlap_tol)
     sch.observe(figure(sch, iteration=1, max_overlap=0.01))
     assert sch.phase == "fire"
     sch.take_pending()
@@ -21,7 +21,7 @@ def figure(sch, iteration, max_overlap, residual=0.5):
     """Reduced figures of one iteration with inner residual ``residual`` (||grad L|| /
     ||grad W||) and positive power (no FIRE restart)."""
     w = sch.w_eq
-    b = sch.s["b"]
+    b = sch.s.b
     grad = residual * math.sqrt(2.0 * w)
     return {"iteration": iteration, "max_gain": 1.0, "max_row": 10.0 * b, "power": 1.0,
             "force2": (grad * b) ** 2, "change2": 1e-6, "W": w, "max_overlap": max_overlap}
@@ -32,7 +32,7 @@ def run_until_step(sch, first, max_overlap, limit, residual=0.5):
     for it in range(first, first + limit):
         sch.coefficients()
         sch.observe(figure(sch, it, max_overlap, residual))
-        if sch.s["dual_now"]:
+        if sch.s.dual_now:
             return it
     return None
 
@@ -43,12 +43,12 @@ def walk_to_lbfgs(sch, at_fire_step=None):
     ``at_fire_step(step)``, called after each step of FIRE's phase, may look at that step's
     pass and returns the iteration to go on from."""
     it, seen = 2, []
-    while not sch.s["qn"]:
+    while not sch.s.qn:
         step = run_until_step(sch, it, 0.01, schedule.FIRST_INNER + sch.fall_iterations + 10)
         assert step is not None and len(seen) < 12
-        seen.append(sch.s["cb"])
+        seen.append(sch.s.cb)
         it = step + 1
-        if at_fire_step is not None and not sch.s["qn"]:
+        if at_fire_step is not None and not sch.s.qn:
             it = at_fire_step(step)
     return step, it, seen
 
@@ -78,8 +78,8 @@ def test_no_step_is_forced_while_the_overlap_is_within_the_hold():
 
 def test_a_converged_inner_solve_steps_whatever_the_overlap():
     sch = fire_schedule()
-    run_until_step(sch, 2, 1e-5, schedule.MIN_INNER + 1, residual=0.1 * sch.s["eta"])
-    assert sch.s["dual_now"] and sch.s["dual_steps"] == 1
+    run_until_step(sch, 2, 1e-5, schedule.MIN_INNER + 1, residual=0.1 * sch.s.eta)
+    assert sch.s.dual_now and sch.s.dual_steps == 1
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -88,13 +88,13 @@ def test_the_penalty_factor_grows_while_the_overlap_does_not_halve_up_to_its_cap
     (beta > 0 outside a multiplier step) runs only at the start's factor."""
     sch = fire_schedule(dim=dim)
     start, grow = {2: (4.0, 2.0), 3: (16.0, 8.0)}[dim]
-    assert sch.coefficients()[4] == schedule.OMEGA * start
+    assert sch.coefficients().beta == schedule.OMEGA * start
     it = 2
     factors = []
     for _ in range(12):
         step = run_until_step(sch, it, 0.01, schedule.FIRST_INNER + sch.fall_iterations + 10)
         assert step is not None
-        factors.append(sch.s["cb"])
+        factors.append(sch.s.cb)
         it = step + 1
     assert factors[0] == start  # the first step has no step before it to compare with
     assert factors[1] == grow * start
@@ -102,7 +102,7 @@ def test_the_penalty_factor_grows_while_the_overlap_does_not_halve_up_to_its_cap
     assert factors == sorted(factors)
     sch.coefficients()
     sch.observe(figure(sch, it, 0.01))  # the iteration after a step at a grown factor
-    assert sch.coefficients()[4] == 0.0
+    assert sch.coefficients().beta == 0.0
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -112,9 +112,9 @@ def test_the_inner_solves_turn_to_lbfgs_once_the_penalty_is_stiff(dim):
     sch = fire_schedule(dim=dim)
     assert schedule.QN_FROM_CB[dim] == {2: 256.0, 3: 1024.0}[dim]
     step, it, seen = walk_to_lbfgs(sch)
-    assert sch.s["cb"] == schedule.QN_FROM_CB[dim], seen
+    assert sch.s.cb == schedule.QN_FROM_CB[dim], seen
     assert all(cb < schedule.QN_FROM_CB[dim] for cb in seen[:-1]), seen
-    assert sch.s["qn_from"] == step + 1
+    assert sch.s.qn_from == step + 1
     assert sch.quasi_newton_pass() is False  # the multiplier step's pass comes first
     sch.coefficients()
     sch.observe(figure(sch, it, 0.01))
@@ -130,14 +130,14 @@ def test_the_lbfgs_phase_damps_its_multiplier_steps(dim):
 
     def full_step(step):  # a multiplier step of FIRE's phase: the full step
         a4, beta = sch.coefficients()[3:5]
-        assert (a4, beta) == (0.0, sch.s["cb"])  # the penalty off, lambda + c_b w phi
+        assert (a4, beta) == (0.0, sch.s.cb)  # the penalty off, lambda + c_b w phi
         sch.observe(figure(sch, step + 1, 0.01))
         return step + 2
 
     _, it, _ = walk_to_lbfgs(sch, at_fire_step=full_step)
     damp = {2: 0.5, 3: 1.0}[dim]
     assert schedule.QN_DUAL_STEP[dim] == damp
-    cb = sch.s["cb"]
+    cb = sch.s.cb
     a1, a2, a3, a4, beta = sch.coefficients()[:5]  # the multiplier step that turned L-BFGS on
     assert (a3, a4, beta) == (0.0, 0.0, damp * cb)
     sch.observe(figure(sch, it, 0.01))
@@ -145,4 +145,4 @@ def test_the_lbfgs_phase_damps_its_multiplier_steps(dim):
     step = run_until_step(sch, it, 0.01, schedule.QN_MAX_INNER + 10)  # forced: overlap above tolerance
     assert step is not None and step - it <= schedule.QN_MAX_INNER
     a1, a2, a3, a4, beta = sch.coefficients()[:5]
-    assert (a3, a4, beta) == (0.0, 0.0, damp * sch.s["cb"])
+    assert (a3, a4, beta) == (0.0, 0.0, damp * sch.s.cb)

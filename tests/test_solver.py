@@ -14,6 +14,7 @@ from conftest import step_each
 from mpipack import config
 from mpipack.engine import initial as init, solver
 from mpipack.parallel.comm import Comm
+from mpipack.engine import loop
 
 
 @pytest.fixture(scope="module")
@@ -125,7 +126,7 @@ def test_stopping_criterion_4_3(comm):
     sets = ["dim=2", "n=20", "method.alpha=0.07", "method.beta=0.5", "stop.eps=1e-6",
             "stop.max_iter=20000"]
     scene = config.load("two-spheres", sets)
-    _, res = solver.run(scene, comm)
+    _, res = loop.run(scene, comm)
     assert res["converged"]
     k = res["iterations"]
     assert res["relative_change"] < 1e-6
@@ -140,7 +141,7 @@ def test_stopping_criterion_4_3(comm):
 def test_final_figures(comm):
     """finish(): lambda brought up to date, W of (3.1), density about the centre of mass."""
     scene = config.load("two-spheres", [])
-    s, res = solver.run(scene, comm)
+    s, res = loop.run(scene, comm)
     # two unit spheres in contact in 1D: radius of gyration 1/2, the ball [Xbar - 1/2,
     # Xbar + 1/2] is exactly covered by the two half-spheres inside it
     assert res["density_radius"] == pytest.approx(0.5, abs=1e-8)

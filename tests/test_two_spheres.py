@@ -14,6 +14,8 @@ from conftest import step_each
 from mpipack import config
 from mpipack.engine import initial as init, solver
 from mpipack.parallel.comm import Comm
+from mpipack.engine import loop
+from mpipack import errors
 
 TOL = 1e-8
 
@@ -27,7 +29,7 @@ def comm():
 
 def run_two(comm, sets):
     scene = config.load("two-spheres", sets)
-    s, res = solver.run(scene, comm)
+    s, res = loop.run(scene, comm)
     return scene, s, res, s.gather()
 
 
@@ -160,7 +162,7 @@ def test_daha_s_converges_iff_the_discrete_map_is_stable(comm, alpha, beta, d):
         assert_contact(g, res, d, 0.25)
     else:
         # the watchdog stops the ringing contact (no progress, or growth) within the bound
-        with pytest.raises(solver.NumericalError) as e:
+        with pytest.raises(errors.NumericalError) as e:
             run_two(comm, sets)
         assert e.value.kind in ("stalled", "diverged") and e.value.solver.state.iteration < 5000
         # without it the run goes to its bound, not converged

@@ -11,6 +11,7 @@ import pytest
 from conftest import describe
 from mpipack.stop import watchdog as wd
 from mpipack.stop.watchdog import BLOCK, STALL_BLOCKS, Watchdog
+from mpipack.stop import rule
 
 
 def feed(dog, figures, lam=lambda it: 1.0, settled=lambda it: math.inf, start=1):
@@ -157,11 +158,11 @@ def test_fire_al_runs_are_not_stopped_for_slowness():
     scene = config.load(None, ["n=50", "output.progress_every=0"])
     s = solver.Solver(scene, Comm(MPI.COMM_SELF))
     s.initialise()
-    assert not solver.make_watchdog(s, scene).stall
+    assert not rule.make_watchdog(s, scene).stall
     scene = config.load("paper-2d", ["n=50"])
     s = solver.Solver(scene, Comm(MPI.COMM_SELF))
     s.initialise()
-    assert solver.make_watchdog(s, scene).stall
-    assert solver.make_watchdog(s, scene.replace(stop={"watchdog": False})) is None
-    assert not solver.make_watchdog(s, scene.replace(stop={"eps": 0.0})).stall
+    assert rule.make_watchdog(s, scene).stall
+    assert rule.make_watchdog(s, scene.replace(stop={"watchdog": False})) is None
+    assert not rule.make_watchdog(s, scene.replace(stop={"eps": 0.0})).stall
     assert wd.STALL_BLOCKS * wd.BLOCK == 3000

@@ -40,7 +40,7 @@ def main(argv=None):
     from mpipack import config
     from mpipack.stop import fit, measures
     from mpipack.engine import hooks
-    from mpipack.engine import solver as solver_mod
+    from mpipack.engine import loop
     from mpipack.parallel.comm import Comm
 
     fit.MAX_STEPS = max(fit.MAX_STEPS, max(steps))
@@ -69,7 +69,7 @@ def main(argv=None):
                 with open(args.json, "a") as f:
                     f.write(json.dumps(row) + "\n")
 
-    solver_mod.run(scene, comm, hooks=[hooks.Hook(probe, every=args.every)])
+    loop.run(scene, comm, hooks=[hooks.Hook(probe, every=args.every)])
     return rows
 
 

@@ -96,8 +96,8 @@ The start and the memory
 Gaussian start: each pair's separation is N(0, 2 sigma^2 I), so P(|X_k - X_l| < r) is the
 regularised lower incomplete gamma function P(b/2, r^2 / (4 sigma^2)). Ball start: (r/R)^b per
 pair (an upper bound). Lattice: the lattice's own shells within r (jitter ignored). Memory per
-rank: ``solver.BYTES_PER_PARTICLE`` per particle plus 12 bytes per pair-row entry (two per pair
-within d_kl + skin), and ``rebuild.BYTES_PER_ENTRY_PEAK`` per entry while rows are built: the
+rank: ``engine.memory.BYTES_PER_PARTICLE`` per particle plus 12 bytes per pair-row entry (two per pair
+within d_kl + skin), and ``engine.memory.BYTES_PER_ENTRY_PEAK`` per entry while rows are built: the
 run refuses a start whose rows do not fit (exit 2); the check says so first and suggests the
 spread (init.sigma) that fits.
 """
@@ -106,13 +106,9 @@ import math
 import os
 import sys
 
-# the eigenvalue problems here are small: one BLAS thread (a shared machine's other jobs make
-# threaded LAPACK 10-30x slower); set before numpy is first imported by this process
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-EXIT_OK, EXIT_INPUT, EXIT_UNSTABLE = 0, 2, 3
+from mpipack.errors import EXIT_INPUT, EXIT_OK, EXIT_UNSTABLE
 
 # close-packed fractions of the packed state (research section 3: phi_p)
 PACKING_FRACTION = {1: 1.0, 2: 0.85, 3: 0.64}
@@ -590,8 +586,7 @@ def start_and_memory(scene, ranks, budget_bytes=None):
     """Overlapping pairs of the start, pair-row entries and memory per rank, and the spread
     that would fit (Gaussian starts)."""
     from mpipack.engine import initial as init
-    from mpipack.engine.rebuild import BYTES_PER_ENTRY_PEAK
-    from mpipack.engine.solver import BYTES_PER_PARTICLE, _available_memory_bytes
+    from mpipack.engine.memory import BYTES_PER_ENTRY_PEAK, BYTES_PER_PARTICLE, available_memory_bytes
     p = scene.particles
     d_mean = 0.5 * (p.diameter + p.d_max)
     cut = p.d_max + scene.neighbor.skin * p.d_max  # rows: every pair within d_kl + skin
@@ -603,7 +598,7 @@ def start_and_memory(scene, ranks, budget_bytes=None):
     peak = per_rank_particles + entries * BYTES_PER_ENTRY_PEAK
     if budget_bytes is None:
         gib = scene.neighbor.max_pair_gib
-        budget_bytes = gib * 2 ** 30 if gib is not None else _available_memory_bytes() / ranks
+        budget_bytes = gib * 2 ** 30 if gib is not None else available_memory_bytes() / ranks
     out = {"overlapping_pairs": overl, "row_pairs": row_pairs, "entries_per_rank": entries,
            "particles_bytes": per_rank_particles, "steady_bytes": steady, "peak_bytes": peak,
            "budget_bytes": budget_bytes, "fits": peak <= budget_bytes and per_rank_particles <= budget_bytes,
@@ -912,14 +907,6 @@ def _window_lines(scene, stable):
 
 
 # ---- command line ----------------------------------------------------------------------------------
-def world_size():
-    for var in ("OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "SLURM_NTASKS"):
-        v = os.environ.get(var)
-        if v is not None and v.isdigit():
-            return int(v)
-    return 1
-
-
 def main(args, rank=0):
     """``mpipack check``: returns the exit code; prints on rank 0 only."""
     from mpipack import config
@@ -929,6 +916,7 @@ def main(args, rank=0):
         if rank == 0:
             print(f"mpipack: error: {e}", file=sys.stderr, flush=True)
         return EXIT_INPUT
+    from mpipack.parallel.launcher import world_size
     ranks = args.ranks or world_size()
     stable, lines, mem = report_lines(scene, ranks)
     if rank == 0:
@@ -939,7 +927,7 @@ def main(args, rank=0):
         print(scene_toml(scene.as_dict()))
         print()
         print("\n".join(lines), flush=True)
-    from mpipack.engine.solver import BYTES_PER_PARTICLE
+    from mpipack.engine.memory import BYTES_PER_PARTICLE
     if mem["particles_bytes"] > mem["budget_bytes"]:
         if rank == 0:
             print(f"mpipack: error: n = {scene.n} spheres need about {_gib(mem['particles_bytes'])} per rank for the "

@@ -1,7 +1,8 @@
-"""Command line: ``mpipack run | check | vtk | bench | paper | scenes``. Thin dispatch; the work
-is elsewhere (``runner`` for run, ``io.vtk`` for vtk, ``bench``, ``experiments.paper``).
+"""Command line: ``mpipack run | check | vtk | bench | paper | suite | compare | scenes``. Thin
+dispatch: it parses, and the work is elsewhere (``engine.runner`` for run, ``analysis.check``,
+``io.vtk``, ``experiments``). Nothing imports this package.
 
-Exit codes (the same on every rank): see ``runner`` (0 converged, 1 internal error, 2 bad
+Exit codes (the same on every rank): ``mpipack.errors`` (0 converged, 1 internal error, 2 bad
 input, 3 numerical trouble, 4 not converged, 5 stopped with a checkpoint).
 """
 
@@ -9,17 +10,8 @@ import argparse
 import os
 import sys
 
-from mpipack.engine.runner import EXIT_INPUT, EXIT_OK
-
-
-def _world_rank():
-    """This process's rank under mpirun/srun, read from the launcher's environment (mpi4py is
-    not imported to parse arguments)."""
-    for var in ("OMPI_COMM_WORLD_RANK", "PMIX_RANK", "PMI_RANK", "SLURM_PROCID"):
-        v = os.environ.get(var)
-        if v is not None and v.isdigit():
-            return int(v)
-    return 0
+from mpipack.errors import EXIT_INPUT, EXIT_OK
+from mpipack.parallel.launcher import world_rank as _world_rank
 
 
 class _Parser(argparse.ArgumentParser):
@@ -129,6 +121,9 @@ def main(argv=None):
         from mpipack.experiments import paper
         return paper.main(args)
     if args.command == "check":
+        # its eigenvalue problems are small: one BLAS thread (a shared machine's other jobs make
+        # threaded LAPACK 10-30x slower); set before numpy is first imported by this process
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
         from mpipack.analysis import check
         return check.main(args, _world_rank())
     if args.command in ("suite", "compare"):
@@ -149,7 +144,10 @@ def main(argv=None):
     if args.command == "vtk":
         return vtk_command(comm, args)
     from mpipack.engine import runner
-    return runner.execute(comm, args)
+    request = runner.RunRequest(scene=args.scene, overrides=tuple(args.overrides), seed=args.seed,
+                                out=args.out, dump=args.dump, quiet=args.quiet, profile=args.profile,
+                                restart=args.restart, walltime=args.walltime)
+    return runner.execute(comm, request)
 
 
 def vtk_command(comm, args):

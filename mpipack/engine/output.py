@@ -109,12 +109,25 @@ class Checkpoints:
         if b.qn is not None:
             block["qn"] = b.qn
         scalars = {"iteration": b.iteration, "lambda_fresh": b.lambda_fresh,
-                   "counters": b.counters, "extra": {**b.extra, **solver.run_state()}}
+                   "counters": b.counters, "extra": b.extra}
         seconds = write_checkpoint(self.comm, self.path, self.scene.n, self.scene.dim, block,
                                    scalars, file_attrs(self.scene, self.comm))
         self.last_iteration = solver.state.iteration
         self.last_seconds = seconds
         return seconds
+
+
+class NoCheckpoints:
+    """The checkpoints of a run that writes no file (``mpipack.run`` without ``out``)."""
+    path = None
+    last_iteration = None
+    last_seconds = None
+
+    def hooks(self):
+        return []
+
+    def write(self, solver):
+        return 0.0
 
 
 def read_state(comm, path):

@@ -7,25 +7,20 @@
                and the Verlet pair rows with lambda from the history
 
 Run when some particle may have moved more than skin/2 since the last build
-(``Solver._refresh_ghosts``). A rebuild never changes results: rows hold every pair within
+(``Solver.refresh_ghosts``). A rebuild never changes results: rows hold every pair within
 d_ij + skin and every pair with lambda > 0, summed in partner-gid order.
 """
 
 import numpy as np
 
+from mpipack.engine.memory import BYTES_PER_ENTRY_PEAK
+from mpipack.errors import TooDenseError
 from mpipack.parallel import comm as comm_mod
 from mpipack.parallel import domain, neighbors
 from mpipack.engine import initial as init
 from mpipack.parallel.state import gather_rows
 from mpipack.engine.timers import BALANCE, BORDERS, EXCHANGE, ROWS
 
-
-class TooDenseError(RuntimeError):
-    """The pair rows of the current configuration would not fit in memory."""
-
-
-# bytes per pair-row entry at the peak of a build (entry 12 B, growth copies, temporaries)
-BYTES_PER_ENTRY_PEAK = 40
 
 
 def rebuild(s, rebalance=False, hist=None):
@@ -72,20 +67,18 @@ def rebuild(s, rebalance=False, hist=None):
     st.lambda_fresh = lam_fresh
     st.pair_offsets, st.pair_j, st.pair_lambda, missing = neighbors.build_rows(
         st.x, st.n_local, st.n_total, st.gid, st.diam, s.skin, *hist,
-        max_entries=s._max_entries)
+        max_entries=s.max_pair_entries)
     too_dense = comm.allreduce(np.array([1 if missing < 0 else 0]), op="max")[0]
     if too_dense:
         raise TooDenseError(
             f"the configuration is too dense for memory: the pair rows of {s.n} spheres "
-            f"would need more than {s._max_entries * BYTES_PER_ENTRY_PEAK / 2**30:.1f} GiB "
+            f"would need more than {s.max_pair_entries * BYTES_PER_ENTRY_PEAK / 2**30:.1f} GiB "
             f"on a rank; spread the start (raise init.sigma, now {init.gaussian_sigma(s.scene):g}), "
             f"use init.kind = \"lattice\", or run on more nodes (limit: neighbor.max_pair_gib)")
     if missing:
         raise RuntimeError(f"internal error: {missing} pair partners with lambda > 0 are missing "
                            f"on rank {comm.rank} after the ghost exchange")
     st.x_build = st.x[: st.n_local].copy()
-    s._disp_bound = 0.0
-    s._qn_cap_pending = 0.0
     s.counters["rebuilds"] += 1
     t.lap(ROWS)
 

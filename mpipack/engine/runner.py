@@ -1,43 +1,63 @@
-"""``mpipack run``: one run of a scene and everything around the loop: the scene (or a restart),
-the output folder, the hooks (progress, metrics, snapshots, checkpoints, wall-time limit),
-signals, and a summary.json on every exit. ``cli`` parses; ``solver.run`` iterates.
-
-Exit codes (the same on every rank):
-
-    0  converged (certified), or under the paper's rule (stop.rule = "eps") (4.3) fired or the
-       requested iterations ran (stop.eps = 0)
-    1  internal error (a bug: please report it with the traceback)
-    2  bad input (scene, option, checkpoint): one line naming the problem
-    3  numerical trouble: NaN, Inf, divergence or oscillation without progress (``watchdog``);
-       the last good state is checkpointed
-    4  not converged within stop.max_iter or stop.max_seconds
-    5  stopped with a checkpoint: SIGTERM, SIGUSR1, SIGINT or --walltime; continue with
-       ``mpipack run --restart RUN_DIR``
+"""One run of a scene and everything around the loop: the scene (or a restart), the output
+folder, the hooks (progress, metrics, snapshots, checkpoints, wall-time limit), signals, and a
+summary.json on every exit. ``mpipack run`` (``cli``) and ``mpipack.run`` (``api``) both come
+here with a ``RunRequest``; ``engine.loop.run`` iterates. Exit codes: ``mpipack.errors``.
 
 Nothing is lost: output paths are checked before any work; summary.json is written on every
 exit (or, if the folder has become unwritable, to a fallback file whose path is printed); a
 signal or a numerical failure leaves a checkpoint of the last good state.
 """
 
+import dataclasses
 import datetime
 import json
 import math
 import os
-import signal
 import sys
 import time
 
 from mpipack import __version__
+from mpipack.errors import (EXIT_CHECKPOINTED, EXIT_INPUT, EXIT_INTERNAL, EXIT_MEANING, EXIT_NOT_CONVERGED,
+                            EXIT_NUMERICAL, EXIT_OK, InputError, NumericalError, TooDenseError)
 
-EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_NUMERICAL, EXIT_NOT_CONVERGED, EXIT_CHECKPOINTED = 0, 1, 2, 3, 4, 5
 # stop reasons of a run that reached its bound before its certificate (exit 4, checkpointed)
 BOUND_STOPS = ("max_iter", "max_seconds")
-EXIT_MEANING = {0: "converged", 1: "internal error", 2: "bad input", 3: "numerical trouble",
-                4: "not converged", 5: "stopped with a checkpoint"}
 
 
-class InputError(Exception):
-    """Bad input found while setting a run up: one line."""
+@dataclasses.dataclass
+class RunRequest:
+    """What a run is asked to do (``mpipack run``'s options, or ``mpipack.run``'s arguments).
+
+    scene: a built-in name, a TOML path, or None (the default scene); overrides: "key=value"
+    strings (``--set``); settings: {dotted key: value} (the library's keyword overrides);
+    out: the run folder (None: the scene's output.dir, else mpipack-out/<scene>);
+    files: False writes no file at all (no folder, summary, snapshot or checkpoint).
+    """
+    scene: object = None
+    overrides: tuple = ()
+    settings: dict = dataclasses.field(default_factory=dict)
+    seed: int = None
+    out: str = None
+    dump: str = None
+    quiet: bool = False
+    profile: bool = False
+    restart: str = None
+    walltime: str = None
+    files: bool = True
+    hooks: tuple = ()
+
+
+@dataclasses.dataclass
+class Outcome:
+    """How a run ended: the exit code, the one-line error (codes 2 and 3), the summary (what
+    summary.json holds), the loop's result dict (None when the loop did not end normally) and
+    the path summary.json was written to (None: not written)."""
+    code: int
+    message: str = None
+    summary: dict = None
+    result: dict = None
+    summary_path: str = None
+    solver: object = None  # the engine's Solver at the end (gathers for the library API)
 
 
 def parse_walltime(text):
@@ -60,8 +80,13 @@ def resolve_scene(comm, args):
     """(scene, restart BlockState or None). A restart takes its scene from the checkpoint;
     a scene or --set given beside it may change only config.RESTART_MAY_CHANGE."""
     from mpipack import config
+    if isinstance(args.scene, config.Scene):  # a Scene object (the library API)
+        table, source = args.scene.as_dict(), None
+    else:
+        table, source = None, args.scene
+    settings = getattr(args, "settings", None) or {}
     if not args.restart:
-        return config.load(args.scene, args.overrides, args.seed), None
+        return config.load(source, args.overrides, args.seed, base=table, settings=settings), None
     from mpipack.io.checkpoint import CheckpointError
     from mpipack.engine.output import read_state
     try:
@@ -70,7 +95,7 @@ def resolve_scene(comm, args):
         raise InputError(str(e)) from None
     if isinstance(table, str):
         table = json.loads(table)
-    scene = config.load(args.scene, args.overrides, args.seed, base=table)
+    scene = config.load(source, args.overrides, args.seed, base=table, settings=settings)
     changed = config.physics_changes(table, scene.as_dict())
     if changed:
         raise InputError(f"--restart: the scene changes {', '.join(changed[:3])}; only "
@@ -101,21 +126,6 @@ def prepare_outputs(out, dump):
     if os.path.isdir(summary):
         return f"--out: {summary} is a folder"
     return None
-
-
-def install_signal_handlers():
-    """SIGTERM, SIGUSR1 (Slurm's --signal) and SIGINT ask every rank to checkpoint and stop at
-    the end of the current iteration; a second SIGINT stops at once (exit 130, one line)."""
-    from mpipack.engine.solver import request_stop, stop_requested
-
-    def handler(signum, frame):
-        if signum == signal.SIGINT and stop_requested():
-            print("mpipack: interrupted again: stopping now, without a checkpoint", file=sys.stderr, flush=True)
-            os._exit(130)
-        request_stop(signum)
-
-    for sig in (signal.SIGTERM, signal.SIGUSR1, signal.SIGINT):
-        signal.signal(sig, handler)
 
 
 def walltime_hook(comm, limit, checkpoints, n, dim):
@@ -205,7 +215,13 @@ def base_summary(comm, scene, args):
 def execute(comm, args):
     """One ``mpipack run`` on every rank of ``comm``; returns the exit code (the same on every
     rank). Prints on rank 0 only."""
+    return run_request(comm, args).code
+
+
+def run_request(comm, args):
+    """One run on every rank of ``comm`` (args: a ``RunRequest``); returns its ``Outcome``."""
     from mpipack import config
+    from mpipack.engine.signals import install_handlers
     rank0 = comm.rank == 0
     err, scene, state, walltime = None, None, None, None
     try:
@@ -216,17 +232,20 @@ def execute(comm, args):
     errs = comm.allgather_object(err)
     first = next((e for e in errs if e), None)
     if first:
-        return fail(comm, EXIT_INPUT, first)
-    out = args.out or scene.output.dir
-    if out is None:
-        restart_dir = args.restart if args.restart and os.path.isdir(args.restart) else \
-            (os.path.dirname(os.path.abspath(args.restart)) if args.restart else None)
-        out = restart_dir or os.path.join("mpipack-out", scene.name)
-    err = prepare_outputs(out, args.dump) if rank0 else None
-    err = comm.bcast_object(err)
-    if err:
-        return fail(comm, EXIT_INPUT, err)
-    install_signal_handlers()
+        return Outcome(fail(comm, EXIT_INPUT, first), first)
+    files = getattr(args, "files", True)
+    out = None
+    if files:
+        out = args.out or scene.output.dir
+        if out is None:
+            restart_dir = args.restart if args.restart and os.path.isdir(args.restart) else \
+                (os.path.dirname(os.path.abspath(args.restart)) if args.restart else None)
+            out = restart_dir or os.path.join("mpipack-out", scene.name)
+        err = prepare_outputs(out, args.dump) if rank0 else None
+        err = comm.bcast_object(err)
+        if err:
+            return Outcome(fail(comm, EXIT_INPUT, err), err)
+    install_handlers()
     try:
         return _execute(comm, args, scene, state, out, walltime)
     except SystemExit:
@@ -235,11 +254,12 @@ def execute(comm, args):
         import traceback
         traceback.print_exc()
         sys.stderr.flush()
-        write_summary(out, {**base_summary(comm, scene, args), "exit_code": EXIT_INTERNAL,
-                            "exit_status": EXIT_MEANING[EXIT_INTERNAL], "error": repr(e)}, rank0)
+        summary = {**base_summary(comm, scene, args), "exit_code": EXIT_INTERNAL,
+                   "exit_status": EXIT_MEANING[EXIT_INTERNAL], "error": repr(e)}
+        path = write_summary(out, summary, rank0) if out is not None else None
         if comm.size > 1:
             comm.abort(EXIT_INTERNAL)
-        return EXIT_INTERNAL
+        return Outcome(EXIT_INTERNAL, repr(e), summary, None, path)
 
 
 def fail(comm, code, message):
@@ -251,9 +271,10 @@ def fail(comm, code, message):
 
 
 def _execute(comm, args, scene, state, out, walltime):
+    """The run itself, once its scene, state and folder are ready (``out`` None: no files)."""
     from mpipack.engine import hooks as hooks_mod
     from mpipack.engine import output
-    from mpipack.engine import solver as solver_mod
+    from mpipack.engine.loop import run
     rank0 = comm.rank == 0
     m = scene.method
     every = scene.output.progress_every
@@ -268,6 +289,9 @@ def _execute(comm, args, scene, state, out, walltime):
               + (f"; restart from iteration {start_iter}" if state is not None else ""), flush=True)
         print(f"{'iteration':>10} {'rel.change':>11} {'max overlap':>11} {'contacts':>9} {'it/s':>9}", flush=True)
     hooks = [hooks_mod.progress_printer(scene, comm, every)] if show else []
+    hooks += list(getattr(args, "hooks", ()))
+    if out is None:  # no files: a scene's file outputs are off
+        scene = scene.replace(output={"metrics_every": 0, "snapshots": False, "checkpoint_every": 0})
     if scene.output.metrics_every > 0:
         hooks.append(hooks_mod.metrics_recorder(scene, comm, os.path.join(out, "metrics.csv"),
                                                 scene.output.metrics_every,
@@ -277,7 +301,7 @@ def _execute(comm, args, scene, state, out, walltime):
         snapshots = output.Snapshots(scene, comm, out, scene.output.snapshot_every,
                                      truncate_after=start_iter if state is not None else None)
         hooks += snapshots.hooks()
-    checkpoints = output.Checkpoints(scene, comm, out, scene.output.checkpoint_every)
+    checkpoints = output.Checkpoints(scene, comm, out, scene.output.checkpoint_every) if out else output.NoCheckpoints()
     hooks += checkpoints.hooks()
     if walltime is not None:
         hooks += walltime_hook(comm, walltime, checkpoints, scene.n, scene.dim)
@@ -285,13 +309,13 @@ def _execute(comm, args, scene, state, out, walltime):
     t0 = time.perf_counter()
     code, message, res, solver = None, None, None, None
     try:
-        solver, res = solver_mod.run(scene, comm, hooks=hooks, source=state, profile=args.profile)
-    except solver_mod.NumericalError as e:
+        solver, res = run(scene, comm, hooks=hooks, source=state, profile=args.profile)
+    except NumericalError as e:
         code, message, solver = EXIT_NUMERICAL, str(e), e.solver
         summary["trouble"] = e.kind  # "non-finite", "diverged" or "stalled"
         if solver is not None:
             summary["iterations"] = solver.state.iteration
-    except solver_mod.TooDenseError as e:
+    except TooDenseError as e:
         code, message = EXIT_INPUT, str(e)
     wall = time.perf_counter() - t0
     files = []
@@ -323,20 +347,20 @@ def _execute(comm, args, scene, state, out, walltime):
     if args.dump and solver is not None:
         data = solver.gather()
         if rank0:
-            files.append(save_dump(args.dump, out, data))
+            files.append(save_dump(args.dump, out or os.getcwd(), data))
     summary.update({"exit_code": code, "exit_status": EXIT_MEANING[code], "error": message,
                     "files": sorted(set(f for f in files if f))})
-    path = write_summary(out, summary, rank0)
+    path = write_summary(out, summary, rank0) if out is not None else None
     if code in (EXIT_NUMERICAL, EXIT_INPUT):
-        return fail(comm, code, message)
+        return Outcome(fail(comm, code, message), message, summary, res, path, solver)
     if rank0 and not args.quiet:
         print_result(scene, res, wall, path, code, checkpoints)
         if args.profile:
-            from mpipack.engine.solver import profile_lines
+            from mpipack.engine.loop import profile_lines
             print("mpipack: time per phase of the loop", flush=True)
             for line in profile_lines(res):
                 print("  " + line, flush=True)
-    return code
+    return Outcome(code, message, summary, res, path, solver)
 
 
 def save_dump(path, out, data):
@@ -412,5 +436,6 @@ def print_result(scene, res, wall, summary_path, code, checkpoints):
         lines.append(f"  checkpoint of iteration {checkpoints.last_iteration} in {checkpoints.path}; "
                      f"continue with mpipack run --restart {os.path.dirname(checkpoints.path)} "
                      f"--set {bound}=<larger>")
-    lines.append(f"  summary: {summary_path}")
+    if summary_path is not None:
+        lines.append(f"  summary: {summary_path}")
     print("\n".join(lines), flush=True)

@@ -48,13 +48,13 @@ def _state_bytes(solver):
 def bench_case(comm, dim, n, form="S", iters=None, repeats=3, spacing=0.99, seed=1):
     """Run one case; returns a dict of figures (identical on every rank).
 
-    One ``solver.run`` with a timing hook: 3 warm-up iterations, 5 to size the timed loops
+    One ``engine.loop.run`` with a timing hook: 3 warm-up iterations, 5 to size the timed loops
     (about 2 s each) unless ``iters`` is given, then ``repeats`` timed loops, each between two
     barriers; the hook stops the run after the last one.
     """
     from mpipack import config
     from mpipack.engine import hooks
-    from mpipack.engine.solver import run
+    from mpipack.engine.loop import run
 
     p = PARAMS
     overrides = [f"dim={dim}", f"n={n}", "init.kind=lattice", f"init.spacing={spacing}",

@@ -4,7 +4,7 @@ residual, |W - W_ref| / W_ref, the paper's A) against wall time and against iter
 curve per method (median over seeds, band from min to max), with the tolerance ladder's stops
 as markers on the curves; PNG, CSV and a markdown table in --out.
 
-Runs. Every run is an ordinary ``mpipack run`` (``runner.execute``, in this process, one rank)
+Runs. Every run is an ordinary ``mpipack run`` (``runner.run_request``, in this process, one rank)
 with the paper's stop rule (4.3) at the tolerance (NAP/NAV: eps_inner = eps / 1000, as the
 paper's Table 1), bounded by stop.max_iter. Per method and seed:
 
@@ -180,28 +180,22 @@ def method_sets(p, eps):
 
 
 def run_one(scene_src, base_sets, p, eps, seed, out, max_iter, metrics_every=0):
-    """One ``mpipack run`` in this process; returns (exit code, summary dict, metrics rows)."""
-    from mpipack import cli
+    """One run in this process (the engine's ``run_request``, as ``mpipack run`` does); returns
+    (exit code, summary dict, metrics rows)."""
     from mpipack.engine import runner
     from mpipack.parallel.comm import Comm
     sets = list(base_sets) + method_sets(p, eps) + [
         'stop.rule="eps"', f"stop.eps={eps!r}", f"stop.max_iter={max_iter}", "output.progress_every=0",
         "output.snapshots=false", f"output.metrics_every={metrics_every}"]
-    argv = ["run"] + ([scene_src] if scene_src else []) + sum((["--set", s] for s in sets), []) + \
-        ["--out", out, "--quiet", "--seed", str(seed)]
-    args = cli._parser().parse_args(argv)
+    request = runner.RunRequest(scene=scene_src or None, overrides=tuple(sets), seed=seed, out=out, quiet=True)
     err = sys.stderr
     sys.stderr = open(os.devnull, "w")  # a run that fails says so in its summary
     try:
-        code = runner.execute(Comm(), args)
+        outcome = runner.run_request(Comm(), request)
     finally:
         sys.stderr.close()
         sys.stderr = err
-    summary = {}
-    path = os.path.join(out, "summary.json")
-    if os.path.exists(path):
-        with open(path) as f:
-            summary = json.load(f)
+    code, summary = outcome.code, outcome.summary or {}
     rows = []
     mpath = os.path.join(out, "metrics.csv")
     if metrics_every > 0 and os.path.exists(mpath):
@@ -519,7 +513,7 @@ QUICK = {"scenes": [("paper-2d", ["n=7"], 5000), ("paper-2d", ["n=100"], 20000)]
 
 def main(args):
     from .. import config
-    from mpipack.analysis.check import world_size
+    from mpipack.parallel.launcher import world_size
     if world_size() > 1:
         print("mpipack: error: start mpipack compare without mpirun (its runs are on one rank each)",
               file=sys.stderr)

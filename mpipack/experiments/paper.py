@@ -77,7 +77,8 @@ def run_single(scene, budget=None, trace=False, comm=None):
     methods, inner iterations for nested ones). Returns a dict of results."""
     from mpi4py import MPI
 
-    from mpipack.engine import hooks, solver as solver_mod
+    from mpipack.engine import hooks, loop, solver as solver_mod
+    from mpipack.errors import NumericalError
     from mpipack.parallel.comm import Comm
     comm = comm or Comm(MPI.COMM_SELF)
     s = solver_mod.Solver(scene, comm)
@@ -86,7 +87,7 @@ def run_single(scene, budget=None, trace=False, comm=None):
     errs, work_axis = [], []
 
     def work():
-        return s.counters["inner_iterations"] if s.nested else s.state.iteration
+        return s.counters["inner_iterations"] if s.method.counts_inner else s.state.iteration
 
     def record(ctx):
         errs.append(ctx.figures["relative_change"])
@@ -102,9 +103,9 @@ def run_single(scene, budget=None, trace=False, comm=None):
         ([hooks.Hook(budget_spent, every=1, name="budget")] if budget is not None else [])
     t0 = time.perf_counter()
     try:
-        _, res = solver_mod.run(scene, comm, hooks=hook_list, solver=s)
+        _, res = loop.run(scene, comm, hooks=hook_list, solver=s)
         status = "ok"
-    except solver_mod.NumericalError:
+    except NumericalError:
         res = {"converged": False, "W": math.nan, "max_overlap": math.nan,
                "relative_change": errs[-1] if errs else math.nan}
         status = "diverged"
@@ -113,7 +114,7 @@ def run_single(scene, budget=None, trace=False, comm=None):
     # the paper's notion: its stopping criterion (4.3) fired (the certificate is not asked for)
     out = {"converged": res.get("stop_reason") == "eps", "status": status, "outer": s.state.iteration,
            "inner": s.counters["inner_iterations"],
-           "T": s.counters["inner_iterations"] if s.nested else s.state.iteration,
+           "T": s.counters["inner_iterations"] if s.method.counts_inner else s.state.iteration,
            "W": res["W"], "max_overlap": res["max_overlap"], "wall": wall,
            "relative_change": res["relative_change"]}
     if g is not None and scene.dim == 2 and scene.n <= 200 and status == "ok":
@@ -298,14 +299,14 @@ def fig4_data(comm, cs, seeds, iters):
 def large_2d(comm, quick, extra_iters):
     """Section 4.3: N = 2000 DAHA-S to eps = 1e-5, then extra_iters more iterations."""
     from mpipack import config
-    from mpipack.engine import solver as solver_mod
+    from mpipack.engine import loop
     scene = config.load("paper-2d", ["output.progress_every=0", "stop.watchdog=false"] + (["n=500"] if quick else []))
     t0 = time.perf_counter()
-    s, first = solver_mod.run(scene, comm)
+    s, first = loop.run(scene, comm)
     fired_at = s.state.iteration
     wall = time.perf_counter() - t0
     g1 = s.gather()
-    _, later = solver_mod.run(scene.replace(stop={"eps": 0.0, "max_iter": fired_at + extra_iters}),
+    _, later = loop.run(scene.replace(stop={"eps": 0.0, "max_iter": fired_at + extra_iters}),
                               comm, solver=s)
     g2 = s.gather()
     return {"n": scene.n, "fired_at": fired_at, "wall": wall, "first": (first, g1),
@@ -314,11 +315,11 @@ def large_2d(comm, quick, extra_iters):
 
 def large_3d(comm, quick):
     from mpipack import config
-    from mpipack.engine import solver as solver_mod
+    from mpipack.engine import loop
     scene = config.load("paper-3d", ["output.progress_every=0", "stop.watchdog=false"]
                         + (["n=500", "stop.max_iter=2000"] if quick else []))
     t0 = time.perf_counter()
-    s, f = solver_mod.run(scene, comm)
+    s, f = loop.run(scene, comm)
     return {"n": scene.n, "iters": s.state.iteration, "wall": time.perf_counter() - t0,
             "final": f, "g": s.gather()}
 

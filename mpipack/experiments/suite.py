@@ -21,7 +21,8 @@ import subprocess
 import sys
 import time
 
-EXIT_OK, EXIT_INPUT, EXIT_FAILED = 0, 2, 1
+from mpipack.errors import EXIT_FAILED, EXIT_INPUT, EXIT_OK
+from mpipack.parallel.launcher import mpi_env
 
 # the base of the parameter sweeps: N = 100 in 2D with the paper's Fig. 6 DAHA-S parameters,
 # which certify in about 6500 iterations
@@ -135,21 +136,6 @@ def one_point_checkpoint(folder, n, dim, form, log):
 
 
 # ---- running -------------------------------------------------------------------------------------
-def mpi_env():
-    """os.environ plus what Open MPI needs to run as root with more ranks than cores (idle ranks
-    yield instead of busy-polling), and this checkout first on PYTHONPATH."""
-    env = dict(os.environ)
-    env["OMPI_ALLOW_RUN_AS_ROOT"] = "1"
-    env["OMPI_ALLOW_RUN_AS_ROOT_CONFIRM"] = "1"
-    env["OMPI_MCA_rmaps_base_oversubscribe"] = "1"
-    env.setdefault("OMPI_MCA_mpi_yield_when_idle", "1")
-    env.setdefault("OMPI_MCA_orte_execute_quiet", "1")
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    env.pop("PYTHONSTARTUP", None)
-    return env
-
-
 def run_cli(ranks, args, cwd, timeout):
     cmd = ["mpirun", "--oversubscribe", "-n", str(ranks), sys.executable, "-m", "mpipack.cli"] + [str(a) for a in args]
     return subprocess.run(cmd, cwd=cwd, env=mpi_env(), capture_output=True, text=True, timeout=timeout)
@@ -416,7 +402,7 @@ def notes(results):
 
 def main(args):
     """``mpipack suite``: returns 0 when every case passes, 1 otherwise."""
-    from mpipack.analysis.check import world_size
+    from mpipack.parallel.launcher import world_size
     if world_size() > 1:
         print("mpipack: error: start mpipack suite without mpirun: it launches its own", file=sys.stderr)
         return EXIT_INPUT

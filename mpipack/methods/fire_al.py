@@ -1,353 +1,188 @@
-"""The "fire-al" schedule (``method.schedule = "fire-al"``): parameters that need no tuning,
-set every iteration from the figures of the previous one. No MPI, no arrays: every input is a
-reduced number, so every rank takes the same decisions (bitwise rank-count independence).
+"""The fire-al method: DAHA's explosion, then FIRE on an augmented Lagrangian, then L-BFGS on
+its stiff penalty, with parameters set every iteration from the reduced figures of the last
+(``methods.fire_al_schedule`` decides; this object carries the decisions out on the state).
 
-Why (docs/convergence.md has the measurements): with fixed (alpha, beta, gamma, c) DAHA is
-stable only while alpha^2 Hess L + gamma^2 J^T Lambda J has its largest eigenvalue below 4;
-the multipliers grow like the pressure, ~R^2 ~ N^(2/b), so any fixed set leaves the stability
-region as N grows, and momentum (c < 2) with the lambda-weighted gamma term makes weakly loaded
-contacts chatter. The schedule therefore spreads a dense start, explodes what overlap
-remains, then relaxes with FIRE on an augmented Lagrangian.
-
-Law (from N, b, the mean diameter d and the form; a uniform ball of packing fraction phi_p =
-1, 0.85, 0.64 in 1D, 2D, 3D, about b N contacts, and the virial identity of a KKT point,
-S: sum lambda d^2 = W, NS: sum lambda d = 2W):
-
-    R = d/2 (N/phi_p)^(1/b),  W_eq = N b R^2 / (2(b+2)),
-    lam_bar = W_eq / (b N d^2) (S)  or  2 W_eq / (b N d) (NS),  g2 = 4 d^2 (S) or 1 (NS)
-
-0. Spread (a start whose first max overlap exceeds 0.5 d and whose W is below that of a uniform
-   ball of radius SPREAD R, SPREAD = sqrt 6: a sixth of the packing's density in 2D): every
-   centre moves along its ray from Xbar to SPREAD R F(r)^(1/b), F the cloud's radial
-   distribution (an exact histogram summed over ranks): a uniform dilute ball, directions and
-   the order of radii kept (``init.equalise_radially``). A dense Gaussian start otherwise
-   explodes by diffusion (kicks of ~10 d in random directions), thousands of iterations at
-   N = 1e5, and a homothety would put its tail (the farthest of N at sqrt(2 ln N) sigma) far
-   out, so that the fall back takes longer.
-
-1. Explosion (only for a start whose first max overlap exceeds 0.5 d): paper DAHA with c = 2,
-   gamma = alpha = sqrt(2 theta / S_law), S_law = kappa g2 2b lam_bar (the CFL of the gamma
-   term at the law's row stiffness; the weight of grad W is alpha^2 d^p: p = 2 (S), 1 (NS)),
-   beta = q_e / (a3 T) with T the reduced largest dual gain of a row, q_e = 100 for a dense
-   start, 1 after the spread (the remaining overlaps are isolated pairs: separate them, do not
-   fling them across the gas); until the max overlap is below 0.1 d or W exceeds 10 W_eq (an
-   explosion that overshoots: in 1D it would fly to 1000 W_eq). Then lambda := 0 and
-   X^{n-1} := X^n.
-
-2. FIRE on the augmented Lagrangian L_rho (``kernels_fire``, clip form) with per-pair penalty
-   rho = c_b max(lambda, lam_fl) / d_ij^p (phi has the units of d^p), lam_fl = f lam_bar; while
-   c_b is at its start (4 in 1D and 2D, 16 in 3D), a continuous dual step lambda <- max(0, lambda + omega rho phi)
-   every iteration; a multiplier (ALM) step lambda <- max(0, lambda + rho phi) (one pass, penalty
-   off) when the inner residual r_in = ||grad L_rho|| / ||grad W|| <= eta (eta from 0.3, halved
-   at each ALM step, floor 0.003) and at least 20 iterations since the last, or after MAX_INNER
-   iterations without one (the first: FIRST_INNER iterations after the fall from the spread
-   ball, ~2 (SPREAD - 1) R / VMAX iterations, is over), unless the max overlap is already within
-   HOLD_OVERLAP times the stop's overlap tolerance: then the multipliers do what they are for,
-   and what remains is the inner solve's stationarity, which a forced step would only disturb.
-   At an ALM step whose max overlap is above half that of the step before (the multipliers did
-   not gain on the overlap), c_b doubles (x8 in 3D; up to 1024) and the
-   continuous dual stops: in a disordered packing (3D, mixed sizes) the soft penalty lets
-   contacts slide and rearrange after every multiplier step, and the continuous dual's small
-   kicks keep the inner problem from settling; a stiffer penalty freezes the contact network so
-   that the multiplier steps converge (docs/convergence.md, section 3c). A 3D packing is a glass
-   whatever the soft phase does (the soft phase anneals a 2D crystal, section 3c), so 3D starts
-   stiffer and stiffens faster: 3D N = 2000 and 8000 certify 2.1x and 1.5x sooner (section 3g).
-   FIRE (Bitzek et al. 2006) in displacement form:
-       X^{n+1} - X^n = a (X^n - X^{n-1}) + b G,    G = -grad L_rho,   |step_i| <= vmax d
-       a = (1 - mix) dt / dt_prev,   b = (1 - mix) dt^2 + mix dt^2 |V| / (dt |G|)
-   power G.V < 0: X^{n-1} := X^n, dt /= 2, mix = 0.1; after 5 positive iterations
-   dt = min(1.1 dt, dt_max), mix *= 0.99; dt_max = 2 / sqrt(k_rel), k_rel = K / b with K the
-   reduced largest Gershgorin row of the step (so dt_max tracks the stiffest contact): the
-   leapfrog bound dt^2 lambda_max < 4 with Gershgorin's k_rel >= lambda_max (a margin of 2 on dt,
-   as before, cost 3 - 8 times more iterations at N = 8000: docs/convergence.md, section 3d).
-
-3. L-BFGS on the stiff penalty: from the multiplier step at which c_b reaches
-   QN_FROM_CB (the cap, 1024, in 1D and 3D; 256 in 2D), the inner solves are L-BFGS's (``qn``:
-   memory m pairs, the two-loop recursion on the Gram matrix of exact sums, one reduction per
-   iteration; ``kernels_qn``) instead of FIRE's. In the stiff phase FIRE's step is bounded by
-   the stiffest contact (c_b lambda |grad phi|^2) while the packing creeps along soft modes only
-   the trap holds; a quasi-Newton direction learns their curvature from its last steps
-   (docs/convergence.md, sections 3k, 3q and 3r). A multiplier step
-   then resets the memory (L_rho changed); it is forced after QN_MAX_INNER iterations while the
-   max overlap is above the stop's tolerance (the inner solve has converged as far as it will;
-   only the multipliers bring the overlap under it), after MAX_INNER between the hold and the
-   tolerance. In 2D it is damped, lambda <- max(0, lambda + QN_DUAL_STEP rho phi) with
-   QN_DUAL_STEP = 1/2: the creeping phase's inner solves end far from converged, and a full step
-   over-corrects.
-
-Fixed points: at a KKT point the clip gives the force multiplier lambda, grad L_rho = grad L =
-0, both dual steps leave lambda unchanged and every step is zero: the fixed points are those of
-the paper (Proposition 2.4). The certificate's multipliers are the force multipliers
-max(0, lambda + rho phi) of the pairs in contact to the overlap tolerance (``force_multiplier``;
-the first-order estimate of augmented Lagrangian codes): the stored lambda lags a multiplier
-step behind, so that between two steps a converged inner solve could not be certified.
+An iteration is either one pass of the fire-al kernel (``kernels.fire``) through
+``Solver.advance``, or, once the schedule's penalty is stiff (``QN_FROM_CB``), an L-BFGS step
+(``lbfgs_iteration``): the same kernel as a gradient pass, the memory's dots
+(``kernels.lbfgs``) in the same ONE allreduce, the direction from the Gram matrix
+(``methods.lbfgs``), then the per-sphere step before the ghosts are refreshed.
 """
 
 import math
 
-from mpipack.methods import lbfgs as qn
+import numpy as np
 
-# explosion
-THETA, KAPPA, Q_EXPLODE, OV_START, OV_END = 0.3, 8.0, 100.0, 0.5, 0.1
-EXPLODE_CAP = 0.25  # no sphere moves more than this fraction of the law's radius per iteration
-W_SWITCH = 10.0  # ... or once W exceeds this multiple of the law's W (an overshooting explosion)
-# a start whose W is below that of a uniform ball of radius SPREAD R (the law's radius) is first
-# spread into such a ball about its centre of mass (in 2D: a sixth of the packing's density)
-SPREAD = math.sqrt(6.0)
-Q_GENTLE = 1.0  # the explosion's gain once the start is a dilute ball: separate pairs, no kicks
-# augmented Lagrangian and FIRE
-# OMEGA: the continuous dual step's gain; 0.02 hardens a contact in ~50 iterations, before the
-# sliding spheres of a large packed core (up to 0.02 d per iteration) have left it (0.01: 2D
-# N = 8000 cores flowed for 8000 iterations at overlaps of 0.1 - 0.2 d; 0.03: 3D N = 2000 jammed
-# looser, 3x slower; 0.1: chatter, 10x the restarts; docs/convergence.md, section 3d)
-FLOOR, OMEGA, VMAX = 3.0, 0.02, 0.02
-N_DELAY, F_INC, F_DEC, MIX0, F_MIX, DT0_FRAC = 5, 1.1, 0.5, 0.1, 0.99, 0.1
-ETA0, ETA_F, ETA_MIN, MIN_INNER = 0.3, 0.5, 0.003, 20
-# a multiplier step is forced after MAX_INNER iterations without one (0: never forced), the
-# first after FIRST_INNER beyond the fall (a long soft phase packs denser), but not while the
-# max overlap is within HOLD_OVERLAP x stop.overlap: a stiff glass creeps (its contact forces
-# keep redistributing), so that its inner solve may never reach eta; the forced steps then
-# carry the overlap down, and once it is within tolerance they only disturb the force balance
-# the certificate needs (docs/convergence.md, section 3e)
-MAX_INNER, FIRST_INNER, HOLD_OVERLAP = 1500, 3000, 0.5
-# the penalty factor c_b grows (x CB_GROW) at a multiplier step whose max overlap is above PEN_GROW
-# times that of the step before (the multipliers did not gain on the overlap), up to CB_MAX; the
-# continuous dual step runs only while c_b is at its start
-# (1024: a multiplier step at overlap delta changes the pair's multiplier by 2 c_b delta lambda
-# (S), so that at 256 the certificate's 1e-3 d needed the creeping glass's contact forces to
-# settle to within half between two steps; 3D N = 8000 certified 1 run of 3 at 256)
-PEN_GROW, CB_MAX = 0.5, 1024.0
-# the penalty factor's start C_B and its growth factor CB_GROW by dimension: 3D starts at 16 and
-# grows x8 (3D N = 2000 seeds 0 - 9: median 8500 iterations against 17875 with (4, x2); N = 8000
-# seeds 0 - 4: 15950 against 23825; 3D N = 100 and 500 a little slower in median, 3625 and 6100
-# against 2650 and 5325, with shorter worst cases; docs/convergence.md, section 3g). In 2D the same
-# pair is slower (N = 2000: 5125, and 3275 with x8 alone, against 2675): the soft phase
-# anneals a crystal there
-C_B = {1: 4.0, 2: 4.0, 3: 16.0}
-CB_GROW = {1: 2.0, 2: 2.0, 3: 8.0}
-# once c_b reaches QN_FROM_CB, the inner solves are L-BFGS's instead of FIRE's (``qn``): in the
-# stiff phase FIRE's step is bounded by the stiffest contact and the packing creeps along its
-# soft modes (the trap's); a quasi-Newton direction learns their curvature from its last steps
-# (docs/convergence.md, sections 3k and 3q). Under a softer penalty a glass keeps rearranging
-# after every multiplier step and the quasi-Newton steps carry it away (3D from 128: 3D N = 8000
-# seed 3 not certified); a 2D packing holds from 256 (2D N = 32000 seeds 0 - 4 and the mixed
-# sizes sooner in sum than from the cap; docs/convergence.md, section 3r)
-QN_FROM_CB = {1: CB_MAX, 2: 256.0, 3: CB_MAX}
-# ... whose multiplier step is forced after QN_MAX_INNER iterations while the max overlap is
-# above the stop's tolerance (the inner solve converges, but only a multiplier step brings the
-# overlap under the tolerance, without which nothing can be certified), after MAX_INNER while
-# it is between the hold and the tolerance
-QN_MAX_INNER = 500
-# ... and in 2D its multiplier step is damped, lambda <- max(0, lambda + QN_DUAL_STEP rho phi):
-# the inner solves of the creeping phase end far from converged (the inner residual at 2 - 7
-# times |grad W| at 2D N = 1e5), and a full step over-corrects the multipliers, whose next inner
-# solve partly undoes the motion the last one made (docs/convergence.md, section 3s: 2D N = 32000
-# seeds 0 - 6 12% fewer iterations in sum, six seeds sooner or the same; the 2D mixed sizes 3%).
-# In 3D it did not clearly pay (N = 2000 seeds 0 - 9 7% fewer, N = 8000 seeds 0 - 4 1% more).
-# A fixed point is unchanged: at a KKT point phi lambda = 0, phi <= 0, and lambda stays
-QN_DUAL_STEP = {1: 1.0, 2: 0.5, 3: 1.0}
-# FIRE's dt_max = DT_LEAPFROG / sqrt(k_rel): the leapfrog's stability bound dt^2 lambda_max < 4
-# with lambda_max bounded by the Gershgorin row k_rel
-DT_LEAPFROG = 2.0
-PACKING_FRACTION = {1: 1.0, 2: 0.85, 3: 0.64}
+from mpipack.engine import initial
+from mpipack.engine.timers import REDUCE, STEP
+from mpipack.kernels import daha as kernels
+from mpipack.kernels import fire as kernels_fire
+from mpipack.kernels import lbfgs as kernels_lbfgs
+from mpipack.methods import lbfgs
+from mpipack.methods.base import Method
+from mpipack.methods.fire_al_schedule import FireALSchedule, Phase, Request
 
 
-def packing_law(n, dim, d, form):
-    """The law's radius, W at equilibrium and mean multiplier (see the module docstring)."""
-    radius = 0.5 * d * (n / PACKING_FRACTION[dim]) ** (1.0 / dim)
-    w_eq = n * dim / (2.0 * (dim + 2)) * radius * radius
-    contacts = max(1.0, dim * n)
-    lam_bar = w_eq / (contacts * d * d) if form == "S" else 2.0 * w_eq / (contacts * d)
-    return {"radius": radius, "W": w_eq, "lam_bar": lam_bar, "g2": 4.0 * d * d if form == "S" else 1.0}
+class FireAL(Method):
+    """The parameter-free schedule (``method.schedule = "fire-al"``), the default of DAHA
+    scenes that set no parameters."""
 
+    name = "fire-al"
+    # FIRE's restarts and the augmented Lagrangian's dual steps make slow phases that the
+    # watchdog's figures cannot tell from a cycle: the 3D N = 100 run of seed 1, which
+    # certifies after 14750 iterations, would be stopped at 3250
+    watch_stall = False
 
-class FireAL:
-    """The schedule's state and decisions. Per iteration the solver calls ``coefficients()``
-    before the kernel pass and ``observe(fig)`` with the reduced figures after it; ``pending``
-    says what to do to the state before the next pass ("reset_lambda", "restart")."""
+    def __init__(self, scene):
+        self.dim, self.n = scene.dim, scene.n
+        self.schedule = FireALSchedule(scene.n, scene.dim, initial.mean_diameter(scene),
+                                       scene.method.form, overlap_tol=scene.stop.overlap)
+        self.kernel = kernels_fire.fire_al_step(scene.method.form, scene.dim)
+        self.coeffs = FireALSchedule.NO_STEP
+        self._lbfgs_reduction = None
 
-    # coefficients of a pass that moves nothing (compiling the kernel at set-up)
-    NO_STEP = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, False, False, 0.0)
+    # ---- the kernel pass ---------------------------------------------------------------------
+    def step_sums(self):
+        return super().step_sums() + [("power", 1), ("force2", 1)]
 
-    def __init__(self, n, dim, d, form, *, overlap_tol):
-        law = packing_law(n, dim, d, form)
-        # no forced multiplier step while the max overlap (relative to d_kl) is below this;
-        # overlap_tol is the scene's stop.overlap
-        self.hold_overlap = HOLD_OVERLAP * overlap_tol
-        self.overlap_tol = overlap_tol
-        self.d, self.dim, self.w_eq = d, dim, law["W"]
-        self.cb_start, self.cb_grow = C_B[dim], CB_GROW[dim]
-        # phi has the units of d^p (S: p = 2, NS: p = 1) and lambda those of W / d^p: the
-        # penalty rho = c_b w / d_ij^p and the dual gains are per unit of phi / d_ij^p (each
-        # pair's own size, in the kernel), and the explosion's a3 (the weight of grad W) is
-        # gamma^2 d^p / 2, so that a scene scaled by any length is the same run
-        self.phi_scale = d * d if form == "S" else d
-        self.spread_radius = SPREAD * law["radius"]  # the uniform ball of step 0
-        self.fall_iterations = int(2.0 * max(SPREAD - 1.0, 0.0) * law["radius"] / (VMAX * d))
-        self.explode_cap = EXPLODE_CAP * law["radius"]
-        self.lam_floor = FLOOR * law["lam_bar"]
-        # the floor of a row's dual gain: |grad phi|^2 of one pair at distance d/2 (S: d^2; NS: 1)
-        self.one_gain = d * d if form == "S" else 1.0
-        s_law = KAPPA * law["g2"] * 2 * dim * law["lam_bar"]
-        self.gamma_explode = math.sqrt(2.0 * THETA / s_law)
-        k_rel = 1.0 + 2.0 * (4 * dim) * self.cb_start * self.lam_floor * law["g2"] / self.phi_scale
-        dt_max = DT_LEAPFROG * math.sqrt(1.0 / k_rel)
-        self.s = {
-            "phase": "start",  # start -> explode -> fire, or start -> fire
-            "gain": law["g2"] * 2 * dim,  # T, the largest dual gain of a row (explosion's beta)
-            "switch_iteration": 0,
-            "pending": [],
-            "dt": DT0_FRAC * dt_max, "dt_prev": DT0_FRAC * dt_max, "dt_max": dt_max,
-            "mix": MIX0, "n_positive": 0, "speed_ratio": 0.0, "b": (DT0_FRAC * dt_max) ** 2,
-            "eta": ETA0, "since_dual": 0, "dual_now": False, "inner_residual": math.inf,
-            "restarts": 0, "dual_steps": 0, "cb": self.cb_start, "ov_dual": math.inf,
-            "qn": False, "qn_from": 0,
+    def step_maxima(self):
+        return super().step_maxima() + [("max_gain", 1), ("max_row", 1)]
+
+    def kernel_pass(self, solver, x_other, xbar, red, n_local=None, all_sums=True):
+        """all_sums False (the kernel as L-BFGS's gradient pass): of the exact sums only
+        |X^n|^2."""
+        st = solver.state
+        n_local = st.n_local if n_local is None else n_local
+        # the fire phase updates lambda every pass (its dual steps); the explosion is DAHA
+        update = self.schedule.phase == Phase.FIRE or not st.lambda_fresh
+        return self.kernel(st.x, x_other, st.x_new, n_local, st.diam, st.pair_offsets, st.pair_j,
+                           st.pair_lambda, xbar, *self.coeffs, update, red.acc("step"),
+                           red.maxima("step"), all_sums)
+
+    def step_figures(self, red, fig):
+        fig.update(power=red.value("power"), force2=red.value("force2"),
+                   max_gain=red.max("max_gain"), max_row=red.max("max_row"))
+
+    # ---- one iteration -----------------------------------------------------------------------
+    def iterate(self, solver):
+        st, sched = solver.state, self.schedule
+        self._before(solver)
+        if sched.quasi_newton_pass():
+            fig = self.lbfgs_iteration(solver)
+        else:
+            fig = solver.advance(st.x_prev, solver.xbar)
+        solver.end_iteration(fig)
+        if sched.phase == Phase.FIRE:
+            st.lambda_fresh = True  # lambda is the last dual step's (the certificate: measures)
+        sched.observe(fig)
+        return fig
+
+    def _before(self, solver):
+        """The schedule's requests, then the coefficients of the next pass."""
+        st = solver.state
+        for request in self.schedule.take_pending():
+            if request == Request.EQUALISE:  # a dense start made a dilute uniform ball
+                solver.equalise(self.schedule.spread_radius)
+            elif request == Request.RESET_LAMBDA:
+                st.pair_lambda[:] = 0.0
+            elif request == Request.RESTART:  # momentum restart: X^{n-1} := X^n
+                st.x_prev[:st.n_local] = st.x[:st.n_local]
+        self.coeffs = self.schedule.coefficients()
+        if self.schedule.phase != Phase.FIRE:
+            self.beta = self.coeffs.beta  # the explosion's (2.10b), for a mid-run check
+
+    def _lbfgs_red(self, solver):
+        """The reduction of an L-BFGS iteration: the loop's blocks (``Solver.loop_reduction``)
+        and the memory's (``kernels.lbfgs.dots``): the new gradient's dots with the 2m + 1
+        slots and itself, the centre of mass of X^n, and the last step's |s|^2, slope g_old.s,
+        max |s_i|^2 and shortened steps."""
+        if self._lbfgs_reduction is None:
+            k = lbfgs.slots(self.schedule.lbfgs.m)
+            red = solver.loop_reduction()
+            red.add_exact("qn", [("qn_dots", k + 1), ("qn_x", self.dim), ("qn_move2", 1),
+                                 ("qn_slope", 1)])
+            red.add_max("qn", [("qn_step2", 1)])
+            red.add_count("qn_clipped")
+            self._lbfgs_reduction = red
+        return self._lbfgs_reduction
+
+    def lbfgs_iteration(self, solver):
+        """One L-BFGS iteration of the schedule's inner solve (``methods.lbfgs``,
+        ``kernels.lbfgs``): the gradient g = grad L_rho at X^n (the fire-al kernel as a gradient
+        pass), its dots with the memory, ONE reduction, the direction p = -H g from the Gram
+        matrix (the same scalars on every rank), X^{n+1} = X^n + p (each sphere's move at most
+        lbfgs.TRUST d).
+
+        The gradient's grad W = X_i - Xbar uses the centre of mass of the previous iterate
+        (this one's is reduced with the gradient): every step is a combination of gradients,
+        whose sum over the spheres is N (Xbar^n - Xbar^{n-1}), so that the centre of mass moves
+        only by rounding and shortened steps. W is that of X^n with its own Xbar."""
+        st, t = solver.state, solver.timers
+        lb = self.schedule.lbfgs
+        red = self._lbfgs_red(solver).begin()
+        k, n = lbfgs.slots(lb.m), st.n_local
+        if st.qn is None or st.qn.shape[1] != k:
+            st.qn = np.zeros((n, k, self.dim))
+        n_active = self.kernel_pass(solver, st.x_prev, solver.xbar, red, all_sums=False)  # x_new = X^n - g
+        cap = lbfgs.TRUST * self.schedule.d
+        head = lb.s["head"] if lb.s["stepped"] else -1
+        clipped = kernels_lbfgs.dots(st.x, st.x_new, n, st.qn, head, cap, red.acc("qn"), red.maxima("qn"))
+        t.lap(STEP)
+        red.set_count("active", n_active)
+        red.set_count("qn_clipped", clipped)
+        red.reduce(solver.comm)
+        solver.check_finite(red)
+        xbar = red.values("qn_x") / self.n
+        xx2, move2 = red.value("xx2"), red.value("qn_move2")
+        dots = red.values("qn_dots")  # g.S_j, g.Y_j, g.G_OLD, g.g
+        solver.moves.settle(math.sqrt(red.max("qn_step2")))
+        fig = {
+            "xbar": xbar,
+            "W": 0.5 * (xx2 - self.n * float(xbar @ xbar)),
+            # the change of the last step (X^n - X^{n-1})
+            "relative_change": math.sqrt(move2 / xx2) if xx2 > 0 else 0.0,
+            "change2": move2,
+            "max_step": math.sqrt(red.max("qn_step2")),
+            "power": 0.0, "force2": float(dots[-1]),
+            "max_gain": red.max("max_gain"), "max_row": red.max("max_row"),
         }
-        self.lbfgs = qn.LBFGS(qn.MEMORY[dim])
-
-    @property
-    def phase(self):
-        return self.s["phase"]
-
-    def quasi_newton_pass(self):
-        """True when the next pass is an L-BFGS step (not a multiplier step, not FIRE's)."""
-        return self.s["qn"] and not self.s["dual_now"]
-
-    # ---- after an iteration ------------------------------------------------------------------
-    def observe(self, fig):
-        """Take the reduced figures of the iteration just done (kernel figures: max_gain,
-        max_row, power, force2, change2, W, max_overlap)."""
-        s = self.s
-        if s["phase"] != "fire":
-            s["gain"] = max(fig["max_gain"], self.one_gain)  # at least one contact's
-            if s["phase"] == "start":
-                s["phase"] = "explode" if fig["max_overlap"] > OV_START else "fire"
-                if s["phase"] == "explode" and SPREAD > 0 and fig["W"] < SPREAD ** 2 * self.w_eq:
-                    s["pending"] = ["equalise", "reset_lambda", "restart"]
-                    s["spread"] = True
-            elif fig["max_overlap"] < OV_END or fig["W"] > W_SWITCH * self.w_eq:
-                s["phase"] = "fire"
-            if s["phase"] == "fire":
-                s["switch_iteration"] = fig["iteration"]
-                s["pending"] = ["reset_lambda", "restart"]
-            return
-        was_dual = s["dual_now"]
-        grad_w = math.sqrt(2.0 * fig["W"])
-        s["since_dual"] += 1
-        s["dual_now"] = False
-        if s["qn"]:
-            # an L-BFGS gradient pass has a3 = 1: force2 is |grad L_rho|^2 (a multiplier
-            # step's pass moves nothing and says nothing about the inner solve)
-            if not was_dual:
-                grad = math.sqrt(fig["force2"])
-                s["inner_residual"] = grad / grad_w if grad_w > 0 else math.inf
+        solver.common_figures(red, fig)
+        coef, y_slot, s_slot, _ = lb.direction(dots, red.value("qn_slope"), red.count("qn_clipped") > 0)
+        t.lap(REDUCE)
+        if coef is None:
+            kernels_lbfgs.backtrack(st.x, st.x_new, n, st.qn, s_slot)
         else:
-            self._fire_observe(fig, grad_w, was_dual)
-        # forced after MAX_INNER iterations without one; the first one waits FIRST_INNER beyond
-        # the fall from the spread ball (twice ~(SPREAD - 1) R / VMAX iterations at the speed
-        # cap); none while the overlap is within the hold (only stationarity is missing)
-        wait = MAX_INNER if s["dual_steps"] >= 1 else FIRST_INNER + self.fall_iterations
-        if s["qn"] and fig["max_overlap"] > self.overlap_tol:
-            wait = QN_MAX_INNER
-        stalled = (MAX_INNER > 0 and s["since_dual"] >= wait
-                   and fig["max_overlap"] > self.hold_overlap)
-        if not was_dual and s["since_dual"] >= MIN_INNER and (s["inner_residual"] <= s["eta"] or stalled):
-            s["dual_now"] = True
-            s["dual_steps"] += 1
-            if fig["max_overlap"] > PEN_GROW * s["ov_dual"]:
-                s["cb"] = min(self.cb_grow * s["cb"], CB_MAX)
-            s["ov_dual"] = fig["max_overlap"]
-            s["since_dual"] = 0
-            s["eta"] = max(ETA_MIN, s["eta"] * ETA_F)
-            if s["qn"]:
-                self.lbfgs.reset()  # the multipliers change L_rho: the memory is of another function
-            elif s["cb"] >= QN_FROM_CB[self.dim]:
-                # from the next inner solve on, L-BFGS; its first step a gradient step at the
-                # stiffest row's scale (k_rel bounds Hess L_rho's largest eigenvalue)
-                s["qn"] = True
-                s["qn_from"] = fig["iteration"] + 1
-                k_rel = max(fig["max_row"] / s["b"], 1.0)
-                self.lbfgs = qn.LBFGS(qn.MEMORY[self.dim], h0=1.0 / k_rel)
+            kernels_lbfgs.direction(st.x, st.x_new, n, st.qn, coef, y_slot, s_slot, cap)
+        st.rotate()
+        st.lambda_fresh = False
+        t.lap(STEP)
+        solver.moves.assume(cap)
+        solver.refresh_ghosts(0.0)
+        return fig
 
-    def _fire_observe(self, fig, grad_w, was_dual):
-        """FIRE's part of ``observe``: the inner residual, restarts, dt and the mixing."""
-        s = self.s
-        b_prev = s["b"]
-        k_rel = max(fig["max_row"] / b_prev, 1.0)
-        s["dt_max"] = DT_LEAPFROG * math.sqrt(1.0 / k_rel)
-        grad = math.sqrt(fig["force2"]) / b_prev  # ||grad L_rho||
-        s["inner_residual"] = grad / grad_w if grad_w > 0 else math.inf
-        s["speed_ratio"] = math.sqrt(fig["change2"]) / (s["dt"] * grad) if grad > 0 else 0.0
-        if fig["power"] < 0 and not was_dual:
-            s["pending"] = ["restart"]
-            s["restarts"] += 1
-            s["dt"] *= F_DEC
-            s["mix"] = MIX0
-            s["n_positive"] = 0
-        else:
-            s["n_positive"] += 1
-            if s["n_positive"] > N_DELAY:
-                s["dt"] = min(s["dt"] * F_INC, s["dt_max"])
-                s["mix"] *= F_MIX
-        s["dt"] = min(s["dt"], s["dt_max"])
+    # ---- what the rest of the engine asks ----------------------------------------------------
+    def multipliers(self, lambda_fresh, finalize=False):
+        if self.schedule.phase == Phase.FIRE:
+            # the augmented Lagrangian's multipliers: the forces the next pass applies
+            return (kernels.LAMBDA_FORCE, *self.schedule.force_multiplier())
+        return super().multipliers(lambda_fresh, finalize)
 
-    # ---- before an iteration -----------------------------------------------------------------
-    def take_pending(self):
-        """The state changes due before the next pass (and forget them)."""
-        todo, self.s["pending"] = self.s["pending"], []
-        return todo
+    def advice(self):
+        return ("the fire-al schedule should not do this: please report the scene and seed; "
+                "meanwhile try another seed or method.form")
 
-    def coefficients(self):
-        """(a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual, vmax) of the next pass."""
-        s = self.s
-        if s["phase"] != "fire":
-            a4 = 0.5 * self.gamma_explode ** 2  # DAHA, c = 2, alpha = gamma (in units of d)
-            a3 = a4 * self.phi_scale
-            q = (Q_GENTLE if s.get("spread") else Q_EXPLODE) if s["phase"] == "explode" else 0.5
-            return 1.0, 0.0, a3, a4, q / (a3 * s["gain"]), 0.0, False, False, self.explode_cap
-        cb = s["cb"]
-        if s["qn"]:
-            if s["dual_now"]:  # the (damped) multiplier step alone: a3 = 0 moves nothing
-                return 1.0, 0.0, 0.0, 0.0, QN_DUAL_STEP[self.dim] * cb, self.lam_floor, True, True, 0.0
-            # L-BFGS's gradient pass: x_new = X^n - grad L_rho (``kernels_qn``)
-            return 1.0, 0.0, 1.0, cb, 0.0, self.lam_floor, True, True, 0.0
-        dt, mix = s["dt"], s["mix"]
-        a = (1.0 - mix) * dt / s["dt_prev"]
-        b = (1.0 - mix) * dt * dt + mix * dt * dt * s["speed_ratio"]
-        s["dt_prev"], s["b"] = dt, b
-        # rho = c_b max(lambda, lam_fl) per unit of phi / d_ij^p (the kernel divides)
-        if s["dual_now"]:  # the multiplier step: lambda + rho phi, penalty off
-            a4, beta = 0.0, cb
-        else:
-            a4, beta = b * cb, (OMEGA * cb if cb == self.cb_start else 0.0)
-        return 1.0 + a, -a, b, a4, beta, self.lam_floor, True, True, VMAX * self.d
-
-    def force_multiplier(self):
-        """(pen, lam_floor) of the force multipliers mu = max(0, lambda + pen max(lambda,
-        lam_floor) phi / d_ij^p) that the next pass moves the spheres with (the certificate's
-        multipliers): the augmented Lagrangian's first-order estimate."""
-        return self.s["cb"], self.lam_floor
-
-    # ---- checkpoint ----------------------------------------------------------------------------
-    def save(self):
-        out = {k: (list(v) if isinstance(v, list) else v) for k, v in self.s.items()}
-        out["lbfgs"] = self.lbfgs.save()
+    def save(self, solver):
+        out = {"schedule": self.schedule.save()}
+        if self.schedule.s.qn:  # an L-BFGS pass does not recompute the next pass's Xbar
+            out["qn_xbar"] = solver.xbar.tolist()
         return out
 
-    def restore(self, saved):
-        saved = dict(saved)
-        lbfgs = saved.pop("lbfgs", None)
-        self.s.update(saved)
-        self.s["pending"] = list(saved.get("pending", []))
-        if lbfgs is not None:
-            self.lbfgs.restore(lbfgs)
+    def restore(self, saved, solver):
+        if "schedule" in saved:
+            self.schedule.restore(saved["schedule"])
+        if "qn_xbar" in saved:
+            # the L-BFGS pass uses the previous iterate's centre of mass (``lbfgs_iteration``)
+            solver.xbar = np.array(saved["qn_xbar"], dtype=np.float64)
 
     def summary(self):
-        s = self.s
-        return {"phase": s["phase"], "switch_iteration": s["switch_iteration"],
-                "spread": bool(s.get("spread")), "restarts": s["restarts"], "dual_steps": s["dual_steps"],
-                "penalty_factor": s["cb"],
-                "lbfgs_from": s["qn_from"] if s["qn"] else None,
-                "lbfgs_resets": self.lbfgs.s["resets"] if s["qn"] else 0,
-                "lbfgs_rejected": self.lbfgs.s["rejected"] if s["qn"] else 0,
-                "lbfgs_shortened": self.lbfgs.s["clipped"] if s["qn"] else 0}
+        return self.schedule.summary()

@@ -58,11 +58,11 @@ def best_kkt(s, mode, pen, lam_floor, gw2, target, max_steps=None):
     st, comm = s.state, s.comm
     n_local = st.n_local
     n_entries = int(st.pair_offsets[n_local])
-    start, step, gradient = kernels_fit.fit_kernels(s.params.form)
+    start, step, gradient = kernels_fit.fit_kernels(s.scene.method.form)
     m_rows = np.zeros(n_entries)
     active = np.zeros(n_entries, dtype=np.bool_)
-    start(st.x, n_local, st.diam, st.pair_offsets, st.pair_j, st.pair_lambda, s.beta, mode,
-          s.kkt_lambda_scale, pen, lam_floor, s.scene.stop.overlap, m_rows, active)
+    start(st.x, n_local, st.diam, st.pair_offsets, st.pair_j, st.pair_lambda, s.method.beta, mode,
+          s.method.kkt_lambda_scale, pen, lam_floor, s.scene.stop.overlap, m_rows, active)
     # the pairs in contact, as rows of their own (the steps touch no other entry)
     c_offsets, c_src = kernels_fit.contacts(st.pair_offsets, n_local, active)
     c_j = st.pair_j[c_src]

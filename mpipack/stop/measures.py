@@ -42,7 +42,7 @@ def measure(s, finalize=False, empty=False, overlap_a=True):
     KKT residual = ||grad W + sum lambda grad phi|| / ||grad W|| over all spheres (2.4), with
     the multipliers of (2.4) (NAV's are tau times its own, see (2.6)); pressure likewise. Under
     the fire-al schedule's augmented Lagrangian the multipliers are the force multipliers
-    max(0, lambda + rho phi) of pairs in contact to stop.overlap (``schedule.force_multiplier``):
+    max(0, lambda + rho phi) of pairs in contact to stop.overlap (``FireALSchedule.force_multiplier``):
     the forces the spheres move with, the first-order multiplier estimate that augmented
     Lagrangian codes test stationarity with; the stored lambda is only the last dual step's.
     """
@@ -54,10 +54,10 @@ def measure(s, finalize=False, empty=False, overlap_a=True):
     pressure = np.zeros(st.n_local)
     contacts = np.zeros(st.n_local, dtype=np.int32)
     net_force = np.zeros(st.n_local)
-    n_active = s._metrics_kernel(st.x, 0 if empty else st.n_local, st.diam, st.gid, st.pair_offsets, st.pair_j,
-                                 st.pair_lambda, s.xbar, s.beta, mode, s.kkt_lambda_scale, pen, floor,
-                                 s.scene.stop.overlap, overlap_a,
-                                 red.acc("met"), red.maxima("met"), pressure, contacts, net_force)
+    n_active = s.metrics_kernel(st.x, 0 if empty else st.n_local, st.diam, st.gid, st.pair_offsets, st.pair_j,
+                                st.pair_lambda, s.xbar, s.method.beta, mode, s.method.kkt_lambda_scale, pen, floor,
+                                s.scene.stop.overlap, overlap_a,
+                                red.acc("met"), red.maxima("met"), pressure, contacts, net_force)
     if mode == kernels.LAMBDA_UPDATE:
         st.lambda_fresh = True
     red.set_count("active", n_active)
@@ -85,13 +85,9 @@ def measure(s, finalize=False, empty=False, overlap_a=True):
 
 def multiplier_mode(s, finalize=False):
     """(lambda_mode, pen, lam_floor): which multipliers are those of the current X (see
-    ``measure``); pen and lam_floor are the fire-al schedule's force multipliers'."""
-    if s.schedule is not None and s.schedule.phase == "fire":
-        # the augmented Lagrangian's multipliers: the forces the next pass applies
-        return (kernels.LAMBDA_FORCE, *s.schedule.force_multiplier())
-    if s.state.lambda_fresh:
-        return kernels.LAMBDA_STORED, 0.0, 0.0
-    return (kernels.LAMBDA_UPDATE if finalize else kernels.LAMBDA_PEEK), 0.0, 0.0
+    ``measure``; the method's ``multipliers``): pen and lam_floor are the fire-al schedule's
+    force multipliers'."""
+    return s.method.multipliers(s.state.lambda_fresh, finalize)
 
 
 def best_kkt(s, fig, target, max_steps=None):

@@ -1,0 +1,28 @@
+"""The memory guard: what a rank may hold, shared by the run (``Solver``, which refuses a
+system that cannot fit before allocating anything) and ``mpipack check`` (which estimates it)."""
+
+# resident bytes per particle, a conservative estimate of the arrays (X^n, X^{n-1}, X^{n+1}, at
+# the last build; gid, diameter; about 6 (2D) / 12 (3D) pair entries with growth room) and of
+# the set-up's temporaries; measured at a packed state: 160 (2D) and 262 (3D)
+BYTES_PER_PARTICLE = {1: 250, 2: 400, 3: 650}
+# bytes per pair-row entry at the peak of a build (entry 12 B, growth copies, temporaries)
+BYTES_PER_ENTRY_PEAK = 40
+
+
+def available_memory_bytes():
+    """The node's MemAvailable (/proc/meminfo); 1 TiB where it cannot be read."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 2 ** 40
+
+
+def rank_budget_bytes(scene, ranks_per_node):
+    """The bytes one rank may use: neighbor.max_pair_gib when the scene sets it (under a batch
+    system's memory limit, set the key), else its share of the node's available memory."""
+    gib = scene.neighbor.max_pair_gib
+    return gib * 2 ** 30 if gib is not None else available_memory_bytes() / ranks_per_node

@@ -1,0 +1,101 @@
+"""The interface every method implements: what one iteration does to a ``Solver``'s state.
+
+The engine (``engine.solver``) owns the mechanics every method shares: the state, the ghost
+refresh and rebuilds, the reductions, the loop. A method owns the rest:
+
+    its kernels          the numba step for its scheme, form and dimension (``kernels``)
+    its coefficients     a typed NamedTuple, set per pass (``coefficients``)
+    its state            ``save()`` / ``restore()``: what a checkpoint must carry to continue
+                         bit for bit (JSON-able)
+    its iteration        ``iterate(solver)``: one (outer) iteration, by the solver's collective
+                         operations (``Solver.advance``, ``refresh_ghosts``, ``equalise``, ...)
+
+Adding a method is adding one module with a subclass and a line in ``for_scene``.
+"""
+
+from mpipack.kernels import daha as kernels
+
+
+class Method:
+    """One family of iterations. Subclasses set the attributes and override the methods below."""
+
+    name = "method"
+    #: the kernel's multipliers are updated with this beta when the metrics pass brings lambda
+    #: up to date with X (``stop.measures``); a schedule may change it per phase
+    beta = 0.0
+    #: multipliers of the KKT system (2.4) per stored multiplier (NAV's solve (2.6): tau)
+    kkt_lambda_scale = 1.0
+    #: per-particle arrays beyond X^n and X^{n-1} that travel with a particle (NAP/NAV: x_lin)
+    extra_fields = ()
+    #: the watchdog's no-progress test applies (fixed-parameter schemes: a cycle or a wander)
+    watch_stall = True
+    #: the work of an iteration counts inner iterations (NAP/NAV)
+    counts_inner = False
+
+    def step_sums(self):
+        """Exact fields the step kernel fills, in its row order: [(name, width)]."""
+        return [("x", self.dim), ("dx2", 1), ("xx2", 1)]
+
+    def step_maxima(self):
+        """Maxima the step kernel fills, in its row order."""
+        return [("step2", 1), ("overlap", 1)]
+
+    def kernel_pass(self, solver, x_other, xbar, red, n_local=None, all_sums=True):
+        """One pass of the step kernel over the first n_local particles (default all local)
+        into ``red``'s step blocks; returns the number of row entries with lambda > 0."""
+        raise NotImplementedError
+
+    def step_figures(self, red, fig):
+        """Add the method's own reduced figures of a pass to ``fig``."""
+
+    def prepare(self, solver):
+        """Compile (or load) the step kernel before the loop: one pass over no particle."""
+        from mpipack.parallel.reduction import Reduction
+        scratch = Reduction().add_exact("step", self.step_sums()) \
+            .add_max("step", self.step_maxima()).begin()
+        self.kernel_pass(solver, solver.state.x_prev, solver.xbar, scratch, n_local=0)
+
+    def iterate(self, solver):
+        """One (outer) iteration; returns its reduced figures (with "iteration")."""
+        raise NotImplementedError
+
+    def multipliers(self, lambda_fresh, finalize=False):
+        """(lambda_mode, pen, lam_floor): which multipliers are those of the current X for the
+        metrics pass (``stop.measures``): the stored ones when fresh, else (2.10b) applied on
+        the fly (stored only with ``finalize``, at the end of a run)."""
+        if lambda_fresh:
+            return kernels.LAMBDA_STORED, 0.0, 0.0
+        return (kernels.LAMBDA_UPDATE if finalize else kernels.LAMBDA_PEEK), 0.0, 0.0
+
+    def advice(self):
+        """A parameter change that would help an unstable or stalled run of this method."""
+        return ""
+
+    def save(self, solver):
+        """The method's state for a checkpoint (JSON-able dict; merged into its ``extra``)."""
+        return {}
+
+    def restore(self, saved, solver):
+        """Take back what ``save`` wrote (``saved`` is the checkpoint's whole ``extra``), after
+        the solver has its particles, rows and centre of mass."""
+
+    def summary(self):
+        """What the run's summary says of the method (None: nothing)."""
+        return None
+
+    def work(self, iterations, inner_iterations):
+        """Particle-iterations of the kernel per sphere: inner ones for the nested methods."""
+        return inner_iterations if self.counts_inner else iterations
+
+
+def for_scene(scene):
+    """The method object a scene asks for (``method.name``, ``method.schedule``)."""
+    m = scene.method
+    if m.nested:
+        from mpipack.methods.nested import Nested
+        return Nested(scene)
+    if m.schedule == "fire-al":
+        from mpipack.methods.fire_al import FireAL
+        return FireAL(scene)
+    from mpipack.methods.fixed import FixedStep
+    return FixedStep(scene)

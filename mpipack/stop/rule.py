@@ -1,0 +1,109 @@
+"""The stop rule: what ends a run, asked once per iteration by the loop (``engine.loop``).
+
+After iteration n + 1 (figures ``fig``, reduced, the same on every rank), in this order:
+
+    hook          a hook returned ``engine.hooks.STOP`` (e.g. the wall-time limit)   -> its name
+    signal        SIGTERM, SIGUSR1 or SIGINT on any rank (``engine.signals``)          "signal"
+    max_seconds   the loop's wall clock reached stop.max_seconds (> 0)                 "max_seconds"
+    certified     every stop.check_every iterations, the certificate holds
+                  (``stop.certificate``; stops only under stop.rule = "certified")      "certified"
+    eps           under stop.rule = "eps" (stop.eps > 0): the paper's (4.3),
+                  ||X^{n+1} - X^n|| / ||X^n|| < eps                                    "eps"
+    watchdog      at a block's end, numerical trouble (``stop.watchdog``): raises
+                  ``errors.NumericalError``
+    max_iter      the run has made stop.max_iter iterations                            "max_iter"
+
+Every input is a reduced value, so every rank stops on the same iteration. "converged" is a
+separate verdict (``final``): the final state meets the certificate, whatever stopped the loop.
+"""
+
+import math
+
+from mpipack.errors import NumericalError
+from mpipack.stop import watchdog as watchdog_mod
+from mpipack.stop.certificate import Certifier
+
+
+class StopRule:
+    """The scene's ``stop`` section as one decision per iteration; its state (the certifier's
+    W history and fit budget, the watchdog's blocks) travels in checkpoints (``save``)."""
+
+    def __init__(self, scene, solver, saved=None):
+        self.stop = scene.stop
+        self.certified_rule = self.stop.rule == "certified"
+        self.certifier = Certifier(self.stop)
+        self.watchdog = make_watchdog(solver, scene)
+        if saved:  # a restart: the same decisions as the run it continues
+            if "certifier" in saved:
+                self.certifier.restore(saved["certifier"])
+            if self.watchdog is not None and "watchdog" in saved:
+                self.watchdog.restore(saved["watchdog"])
+
+    def before(self, iteration):
+        """The reason not to start an iteration at all (a restart at its bound), or None."""
+        return "max_iter" if iteration >= self.stop.max_iter else None
+
+    def decide(self, solver, fig, hook=None):
+        """The reason to stop after this iteration (see the module docstring), or None.
+        ``hook``: the name of a hook that asked to stop."""
+        stop, it = self.stop, fig["iteration"]
+        self.certifier.record(it - 1, fig["W"])  # W^n comes with iteration n + 1
+        reason = hook
+        if reason is None and fig.get("stop_request"):
+            reason = "signal"
+        if reason is None and stop.max_seconds > 0 and fig["wall"] >= stop.max_seconds:
+            reason = "max_seconds"  # the wall clock is reduced: collective
+        if reason is None and it % stop.check_every == 0:
+            if self.certifier.check(solver, fig) and self.certified_rule:
+                reason = "certified"
+        if reason is None and not self.certified_rule and stop.eps > 0 and fig["relative_change"] < stop.eps:
+            reason = "eps"
+        if reason is None and self.watchdog is not None:
+            self._watch(solver, fig)
+        if reason is None and it >= stop.max_iter:
+            reason = "max_iter"
+        return reason
+
+    def _watch(self, solver, fig):
+        """Feed the watchdog one iteration's figures; at a block's end, its verdict raised as a
+        NumericalError (collective: every input is reduced)."""
+        wd = self.watchdog
+        wd.observe(fig)
+        it = fig["iteration"]
+        if not wd.due(it):
+            return
+        last = self.certifier.last
+        kkt = last["criteria"]["kkt"]["value"] if last and it - last["iteration"] < watchdog_mod.BLOCK else math.nan
+        verdict = wd.block_end(it, solver.max_lambda(), self.certifier.w_change(it - 1, fig["W"]), kkt)
+        if verdict is not None:
+            kind, message = verdict
+            raise NumericalError(message, solver, kind)
+
+    def final(self, solver, final_fig, reason):
+        """The certificate of the final state (``stop.certificate.Certifier.final``)."""
+        return self.certifier.final(solver, solver.state.iteration, final_fig, reason == "certified")
+
+    def save(self):
+        """The rule's state for a checkpoint (JSON-able; keys of the checkpoint's ``extra``)."""
+        out = {"certifier": self.certifier.save()}
+        if self.watchdog is not None:
+            out["watchdog"] = self.watchdog.save()
+        return out
+
+
+def make_watchdog(solver, scene):
+    """The run's ``Watchdog`` (None with stop.watchdog = false). Its no-progress test is for
+    the methods whose failure is a cycle or a wander (``Method.watch_stall``: the paper's
+    methods as given), and off when the scene asked for a fixed number of iterations
+    (stop.rule "eps", stop.eps = 0)."""
+    stop = scene.stop
+    if not stop.watchdog:
+        return None
+    from mpipack.engine.initial import mean_diameter
+    from mpipack.methods.fire_al_schedule import packing_law
+    method = solver.method
+    law = packing_law(solver.n, solver.dim, mean_diameter(scene), scene.method.form)
+    return watchdog_mod.Watchdog(solver.n, solver.r_natural, law["lam_bar"] / method.kkt_lambda_scale,
+                                 stop.overlap,
+                                 stall=method.watch_stall and not (stop.rule == "eps" and stop.eps == 0),
+                                 advice=method.advice())
