@@ -75,12 +75,10 @@ def overlap_area_sum(x, d=1.0):
 def run_single(scene, budget=None, trace=False, comm=None):
     """Run one scene to its stopping test (or ``budget`` work units: iterations for one-pass
     methods, inner iterations for nested ones). Returns a dict of results."""
-    from mpi4py import MPI
-
     from mpipack.engine import hooks, loop, solver as solver_mod
     from mpipack.errors import NumericalError
     from mpipack.parallel.comm import Comm
-    comm = comm or Comm(MPI.COMM_SELF)
+    comm = comm or Comm.serial()
     s = solver_mod.Solver(scene, comm)
     s.initialise()
     eps = scene.stop.eps

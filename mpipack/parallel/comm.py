@@ -59,6 +59,11 @@ class Comm:
             self.ranks_per_node = node.Get_size()
             node.Free()
 
+    @classmethod
+    def serial(cls):
+        """This process alone (MPI.COMM_SELF), whatever the launcher started."""
+        return cls(MPI.COMM_SELF)
+
     # ---- reductions ------------------------------------------------------------------------
     def reduce_fused(self, sums, maxima):
         """One allreduce: element-wise integer sum of ``sums`` and max of ``maxima``.
