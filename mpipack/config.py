@@ -36,7 +36,7 @@ PAPER_GAMMA = 1.6e-2  # with the fallback alpha and beta
 # certified in 16950 iterations under 232000). In 2D the polycrystal's grains slide for longer
 # the larger the packing, and the slowest certified runs grew faster than N^(1/2): 7150
 # iterations at N = 8000, 100500 at 32000, 556950 at 1e5 (seed 1, 2 ranks), which N^(1/2)'s
-# 354000 cut short (docs/convergence.md, sections 3i, 3r and 3t): p = 1 there (400000 at
+# 354000 cut short (docs/research/convergence.md, sections 3i, 3r and 3t): p = 1 there (400000 at
 # 32000, 1250000 at 1e5). 1D keeps 1/b = 1.
 MAX_ITER_BASE, MAX_ITER_N = 100000, 8000
 MAX_ITER_GROWTH = {1: 1.0, 2: 1.0, 3: 1.0 / 3.0}

@@ -1,5 +1,5 @@
 """The default parameters certify at small N (the fire-al schedule; long measurements are in
-tools/convergence_sweep.py and docs/convergence.md), and a run that cannot certify says which
+tools/convergence_sweep.py and docs/research/convergence.md), and a run that cannot certify says which
 criterion failed and exits 4. Every run is a real command-line run, checked from its dump."""
 
 import csv
@@ -7,7 +7,7 @@ import csv
 import pytest
 
 from conftest import describe, mpipack_run
-from test_parallel import brute_force_figures
+from support import brute_force_figures
 
 CERTIFIES = {
     # N, dim, form; sigma "auto" and nothing else set: the defaults

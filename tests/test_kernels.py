@@ -12,6 +12,8 @@ import zlib
 import numpy as np
 import pytest
 
+from support import random_cloud, random_lambda, ref_phi_grad, rows_complete
+
 from mpipack.parallel import exactsum, neighbors
 from mpipack.kernels import daha as kernels
 from mpipack.methods import fixed
@@ -19,16 +21,6 @@ from mpipack.methods import fixed
 # ---------------------------------------------------------------------------------------------
 # reference implementation
 # ---------------------------------------------------------------------------------------------
-
-
-def ref_phi_grad(form, xk, xl, dkl):
-    """phi_kl and grad_{X_k} phi_kl (grad_{X_l} phi_kl is its negative), Definition 2.1."""
-    diff = xk - xl
-    r2 = float(np.dot(diff, diff))
-    if form == "S":
-        return dkl * dkl - r2, -2.0 * diff
-    r = math.sqrt(r2)
-    return dkl - r, -diff / r
 
 
 def ref_step(method, form, x, x_prev, diam, lam_prev, alpha, beta, gamma, c, update_lambda,
@@ -66,37 +58,6 @@ def ref_step(method, form, x, x_prev, diam, lam_prev, alpha, beta, gamma, c, upd
         x_new = (2.0 * x - (1.0 - c / 2.0) * x_prev) / h \
             - alpha ** 2 / h * (grad_w + s_lam) - gamma ** 2 / h * s_phi_lam
     return x_new, lam
-
-
-def random_cloud(rng, n, dim, polydisperse=True):
-    """Overlapping random spheres: a dense Gaussian cloud."""
-    x = rng.normal(size=(n, dim)) * (0.35 * n ** (1.0 / dim))
-    diam = rng.uniform(0.8, 1.3, size=n) if polydisperse else np.ones(n)
-    return x, diam
-
-
-def random_lambda(rng, form, x, diam, frac=0.8):
-    """Symmetric lambda^{n-1}: random positive values on a random part of the overlapping pairs."""
-    n = x.shape[0]
-    lam = np.zeros((n, n))
-    for k in range(n):
-        for l in range(k + 1, n):
-            phi, _ = ref_phi_grad(form, x[k], x[l], 0.5 * (diam[k] + diam[l]))
-            if phi > 0 and rng.uniform() < frac:
-                lam[k, l] = lam[l, k] = rng.uniform(0.05, 1.0) * (0.5 if form == "S" else 1.0)
-    return lam
-
-
-def rows_complete(n_local, n_total, gid):
-    """Pair rows with every other particle as partner, sorted by partner gid."""
-    offsets = np.zeros(n_local + 1, np.int64)
-    js = []
-    for i in range(n_local):
-        partners = [j for j in range(n_total) if j != i]
-        partners.sort(key=lambda j: gid[j])
-        js.extend(partners)
-        offsets[i + 1] = len(js)
-    return offsets, np.array(js, dtype=np.int32)
 
 
 def run_kernel(form, x, x_prev, diam, offsets, pair_j, pair_lambda, xbar, coeffs, beta,

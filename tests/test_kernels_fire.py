@@ -11,7 +11,7 @@ from mpipack.parallel import exactsum
 from mpipack.kernels import daha as kernels, fire as kernels_fire
 from mpipack.methods import fixed
 
-from test_kernels import random_cloud, random_lambda, ref_phi_grad, rows_complete
+from support import random_cloud, random_lambda, ref_phi_grad, rows_complete
 
 
 def ref_fire_al(form, x, x_prev, diam, lam_prev, xbar, a1, a2, a3, a4, beta, floor, clip,

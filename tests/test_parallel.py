@@ -11,6 +11,8 @@ import time
 import numpy as np
 import pytest
 
+from support import brute_force_figures
+
 from conftest import MPI_SCRIPTS, TIMEOUT, assert_bitwise_equal, describe, mpi_env, mpirun
 
 
@@ -19,21 +21,6 @@ def assert_ok(proc, summary):
     assert proc.returncode == 0, describe(proc)
     assert summary is not None, "no summary.json" + describe(proc)
     assert "Traceback" not in proc.stderr, describe(proc)
-
-
-def brute_force_figures(d):
-    """W (3.1), largest relative overlap (d_ij - r)/d_ij and lambda > 0 pair count from a dump."""
-    x, diam = d["x"], d["diam"]
-    n = x.shape[0]
-    w = 0.0
-    for i in range(n):  # W = 1/(2N) sum_{i<j} |X_i - X_j|^2, row by row to bound memory
-        w += float(((x[i + 1:] - x[i]) ** 2).sum())
-    w /= 2 * n
-    r = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(axis=2))
-    dij = 0.5 * (diam[:, None] + diam[None, :])
-    ov = (dij - r) / dij
-    np.fill_diagonal(ov, -np.inf)
-    return w, max(float(ov.max()), 0.0)
 
 
 def force_pairs(summary, d):
@@ -288,7 +275,7 @@ def test_default_scene_converges_on_2_ranks(run_mpipack):
     assert all(c["ok"] for c in s["certificate"].values()), s["certificate"]
     assert s["max_overlap"] <= 1e-3 and s["kkt_residual"] <= 1e-2, s
     assert s["schedule"]["phase"] == "fire" and s["schedule"]["dual_steps"] >= 1, s
-    # measured 2950-12000 iterations on seeds 0-19 (docs/convergence.md)
+    # measured 2950-12000 iterations on seeds 0-19 (docs/research/convergence.md)
     assert 0 < s["iterations"] < 15000, s
     # a nearly hexagonal packing: below the optimum pi / (2 sqrt 3) = 0.907, well above the
     # paper's 0.87

@@ -82,6 +82,29 @@ def separation(dim, x, xi0, xi1, xi2, j):
 
 
 @njit(cache=True, inline="always")
+def constraint(form, dij, r2):
+    """The constraint of one pair (Definition 2.1) from its squared distance r2 = |X_i - X_j|^2:
+    (phi_ij, r) with S phi = d_ij^2 - r^2 and NS phi = d_ij - r, r = |X_i - X_j| (NS only; 0.0
+    in the smooth form, which needs no square root). Every kernel that walks the pair rows
+    takes phi from here."""
+    if form == SMOOTH:
+        return dij * dij - r2, 0.0
+    r = np.sqrt(r2)
+    return dij - r, r
+
+
+@njit(cache=True, inline="always")
+def gradient_scale(form, m, r):
+    """The factor s with m grad_{X_i} phi_ij = -s (X_i - X_j): S s = 2 m, NS s = m / r (0 for
+    coincident centres, which have no direction)."""
+    if form == SMOOTH:
+        return 2.0 * m
+    if r > 0.0:
+        return m / r
+    return 0.0
+
+
+@njit(cache=True, inline="always")
 def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j,
                           pair_lambda, xbar, a1, a2, a3, a4, beta, update_lambda, acc, maxima):
     # form and dim are compile-time constants of each wrapper below: LLVM removes the dead
@@ -106,12 +129,7 @@ def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offse
             j = pair_j[e]
             d0, d1, d2, r2 = separation(dim, x, xi0, xi1, xi2, j)
             dij = 0.5 * (di + diam[j])
-            r = 0.0
-            if form == SMOOTH:
-                phi = dij * dij - r2
-            else:
-                r = np.sqrt(r2)
-                phi = dij - r
+            phi, r = constraint(form, dij, r2)
             lam = pair_lambda[e]
             if update_lambda:
                 lam = lam + beta * phi
@@ -128,19 +146,11 @@ def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offse
                     max_overlap = phi / dij
             if lam > 0.0:
                 n_active += 1
-                g = lam * (a3 + a4 * phi)
-                if form == SMOOTH:
-                    # g grad_i phi = -2 g (X_i - X_j)
-                    g = 2.0 * g
-                    f0 -= g * d0
-                    f1 -= g * d1
-                    f2 -= g * d2
-                elif r > 0.0:
-                    # g grad_i phi = -g (X_i - X_j) / r; coincident centres have no direction
-                    g = g / r
-                    f0 -= g * d0
-                    f1 -= g * d1
-                    f2 -= g * d2
+                # lam (a3 + a4 phi) grad_i phi = -g (X_i - X_j)
+                g = gradient_scale(form, lam * (a3 + a4 * phi), r)
+                f0 -= g * d0
+                f1 -= g * d1
+                f2 -= g * d2
         # (2.10a); also the exact partial sums and the maxima for the fused reduction
         xn0 = a1 * xi0 + (a2 * x_prev[i, 0] if two_step else 0.0) - a3 * (xi0 - xb0) - f0
         x_new[i, 0] = xn0
@@ -450,12 +460,7 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
                 d[k] = x[i, k] - x[j, k]
                 r2 += d[k] * d[k]
             dij = 0.5 * (di + diam[j])
-            r = 0.0
-            if form == SMOOTH:
-                phi = dij * dij - r2
-            else:
-                r = np.sqrt(r2)
-                phi = dij - r
+            phi, r = constraint(form, dij, r2)
             lam = entry_multiplier(form, pair_lambda[e], phi, r2, dij, beta, lambda_mode, pen,
                                    lam_floor, contact_tol)
             if lambda_mode == LAMBDA_UPDATE:

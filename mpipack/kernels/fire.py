@@ -39,7 +39,7 @@ import numpy as np
 from numba import njit
 
 from mpipack.parallel import exactsum
-from mpipack.kernels.daha import NONSMOOTH, SMOOTH, coordinates, separation
+from mpipack.kernels.daha import NONSMOOTH, SMOOTH, constraint, coordinates, gradient_scale, separation
 
 # exact rows after the b rows of sum X^{n+1}
 ACC_DX2, ACC_XX2, ACC_POWER, ACC_FORCE2 = 0, 1, 2, 3
@@ -87,14 +87,12 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
             j = pair_j[e]
             d0, d1, d2, r2 = separation(dim, x, xi0, xi1, xi2, j)
             dij = 0.5 * (di + diam[j])
-            r = 0.0
+            phi, r = constraint(form, dij, r2)
+            # |grad_i phi|^2 and the curvature of phi along the pair (the Gershgorin row)
             if form == SMOOTH:
-                phi = dij * dij - r2
                 g2 = 4.0 * r2
                 hess = 2.0
             else:
-                r = np.sqrt(r2)
-                phi = dij - r
                 g2 = 1.0
                 hess = 1.0 / r if r > 0.0 else 0.0
             # the penalty's phi in units of the pair's diameter (clip form): phi / d_ij^p
@@ -131,16 +129,10 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
                 n_active += 1
             if m != 0.0:
                 row += a4 * w * g2 * unit + abs(m) * hess
-                if form == SMOOTH:
-                    g = 2.0 * m
-                    f0 -= g * d0
-                    f1 -= g * d1
-                    f2 -= g * d2
-                elif r > 0.0:
-                    g = m / r  # coincident centres have no direction
-                    f0 -= g * d0
-                    f1 -= g * d1
-                    f2 -= g * d2
+                g = gradient_scale(form, m, r)  # m grad_i phi = -g (X_i - X_j)
+                f0 -= g * d0
+                f1 -= g * d1
+                f2 -= g * d2
         row = a3 + 2.0 * row
         if gain > max_gain:
             max_gain = gain

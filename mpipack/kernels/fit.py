@@ -23,7 +23,7 @@ import numpy as np
 from numba import njit
 
 from mpipack.parallel import exactsum
-from mpipack.kernels.daha import NONSMOOTH, SMOOTH, coordinates, entry_multiplier, separation
+from mpipack.kernels.daha import NONSMOOTH, SMOOTH, constraint, coordinates, entry_multiplier, separation
 
 # exact rows: sum_i |r_i|^2 and the restart test's sum over entries of g (m_next - m_prev)
 # (every pair counted twice, in both of its rows)
@@ -45,7 +45,7 @@ def _start(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, beta, lamb
             for k in range(dim):
                 r2 += (x[i, k] - x[j, k]) ** 2
             dij = 0.5 * (diam[i] + diam[j])
-            phi = dij * dij - r2 if form == SMOOTH else dij - np.sqrt(r2)
+            phi, _ = constraint(form, dij, r2)
             active[e] = r2 <= (dij * (1.0 + contact_tol)) ** 2
             lam = entry_multiplier(form, pair_lambda[e], phi, r2, dij, beta, lambda_mode, pen,
                                    lam_floor, contact_tol)

@@ -3,7 +3,7 @@ need no tuning, set every iteration from the figures of the previous one. The me
 that runs them on the state is ``methods.fire_al.FireAL``. No MPI, no arrays: every input is a
 reduced number, so every rank takes the same decisions (bitwise rank-count independence).
 
-Why (docs/convergence.md has the measurements): with fixed (alpha, beta, gamma, c) DAHA is
+Why (docs/research/convergence.md has the measurements): with fixed (alpha, beta, gamma, c) DAHA is
 stable only while alpha^2 Hess L + gamma^2 J^T Lambda J has its largest eigenvalue below 4;
 the multipliers grow like the pressure, ~R^2 ~ N^(2/b), so any fixed set leaves the stability
 region as N grows, and momentum (c < 2) with the lambda-weighted gamma term makes weakly loaded
@@ -50,7 +50,7 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
    continuous dual stops: in a disordered packing (3D, mixed sizes) the soft penalty lets
    contacts slide and rearrange after every multiplier step, and the continuous dual's small
    kicks keep the inner problem from settling; a stiffer penalty freezes the contact network so
-   that the multiplier steps converge (docs/convergence.md, section 3c). A 3D packing is a glass
+   that the multiplier steps converge (docs/research/convergence.md, section 3c). A 3D packing is a glass
    whatever the soft phase does (the soft phase anneals a 2D crystal, section 3c), so 3D starts
    stiffer and stiffens faster: 3D N = 2000 and 8000 certify 2.1x and 1.5x sooner (section 3g).
    FIRE (Bitzek et al. 2006) in displacement form:
@@ -60,7 +60,7 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
    dt = min(1.1 dt, dt_max), mix *= 0.99; dt_max = 2 / sqrt(k_rel), k_rel = K / b with K the
    reduced largest Gershgorin row of the step (so dt_max tracks the stiffest contact): the
    leapfrog bound dt^2 lambda_max < 4 with Gershgorin's k_rel >= lambda_max (a margin of 2 on dt,
-   as before, cost 3 - 8 times more iterations at N = 8000: docs/convergence.md, section 3d).
+   as before, cost 3 - 8 times more iterations at N = 8000: docs/research/convergence.md, section 3d).
 
 3. L-BFGS on the stiff penalty: from the multiplier step at which c_b reaches
    QN_FROM_CB (the cap, 1024, in 1D and 3D; 256 in 2D), the inner solves are L-BFGS's (``qn``:
@@ -68,7 +68,7 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
    iteration; ``kernels_qn``) instead of FIRE's. In the stiff phase FIRE's step is bounded by
    the stiffest contact (c_b lambda |grad phi|^2) while the packing creeps along soft modes only
    the trap holds; a quasi-Newton direction learns their curvature from its last steps
-   (docs/convergence.md, sections 3k, 3q and 3r). A multiplier step
+   (docs/research/convergence.md, sections 3k, 3q and 3r). A multiplier step
    then resets the memory (L_rho changed); it is forced after QN_MAX_INNER iterations while the
    max overlap is above the stop's tolerance (the inner solve has converged as far as it will;
    only the multipliers bring the overlap under it), after MAX_INNER between the hold and the
@@ -103,7 +103,7 @@ Q_GENTLE = 1.0  # the explosion's gain once the start is a dilute ball: separate
 # OMEGA: the continuous dual step's gain; 0.02 hardens a contact in ~50 iterations, before the
 # sliding spheres of a large packed core (up to 0.02 d per iteration) have left it (0.01: 2D
 # N = 8000 cores flowed for 8000 iterations at overlaps of 0.1 - 0.2 d; 0.03: 3D N = 2000 jammed
-# looser, 3x slower; 0.1: chatter, 10x the restarts; docs/convergence.md, section 3d)
+# looser, 3x slower; 0.1: chatter, 10x the restarts; docs/research/convergence.md, section 3d)
 FLOOR, OMEGA, VMAX = 3.0, 0.02, 0.02
 N_DELAY, F_INC, F_DEC, MIX0, F_MIX, DT0_FRAC = 5, 1.1, 0.5, 0.1, 0.99, 0.1
 ETA0, ETA_F, ETA_MIN, MIN_INNER = 0.3, 0.5, 0.003, 20
@@ -112,7 +112,7 @@ ETA0, ETA_F, ETA_MIN, MIN_INNER = 0.3, 0.5, 0.003, 20
 # max overlap is within HOLD_OVERLAP x stop.overlap: a stiff glass creeps (its contact forces
 # keep redistributing), so that its inner solve may never reach eta; the forced steps then
 # carry the overlap down, and once it is within tolerance they only disturb the force balance
-# the certificate needs (docs/convergence.md, section 3e)
+# the certificate needs (docs/research/convergence.md, section 3e)
 MAX_INNER, FIRST_INNER, HOLD_OVERLAP = 1500, 3000, 0.5
 # the penalty factor c_b grows (x CB_GROW) at a multiplier step whose max overlap is above PEN_GROW
 # times that of the step before (the multipliers did not gain on the overlap), up to CB_MAX; the
@@ -124,7 +124,7 @@ PEN_GROW, CB_MAX = 0.5, 1024.0
 # the penalty factor's start C_B and its growth factor CB_GROW by dimension: 3D starts at 16 and
 # grows x8 (3D N = 2000 seeds 0 - 9: median 8500 iterations against 17875 with (4, x2); N = 8000
 # seeds 0 - 4: 15950 against 23825; 3D N = 100 and 500 a little slower in median, 3625 and 6100
-# against 2650 and 5325, with shorter worst cases; docs/convergence.md, section 3g). In 2D the same
+# against 2650 and 5325, with shorter worst cases; docs/research/convergence.md, section 3g). In 2D the same
 # pair is slower (N = 2000: 5125, and 3275 with x8 alone, against 2675): the soft phase
 # anneals a crystal there
 C_B = {1: 4.0, 2: 4.0, 3: 16.0}
@@ -132,10 +132,10 @@ CB_GROW = {1: 2.0, 2: 2.0, 3: 8.0}
 # once c_b reaches QN_FROM_CB, the inner solves are L-BFGS's instead of FIRE's (``qn``): in the
 # stiff phase FIRE's step is bounded by the stiffest contact and the packing creeps along its
 # soft modes (the trap's); a quasi-Newton direction learns their curvature from its last steps
-# (docs/convergence.md, sections 3k and 3q). Under a softer penalty a glass keeps rearranging
+# (docs/research/convergence.md, sections 3k and 3q). Under a softer penalty a glass keeps rearranging
 # after every multiplier step and the quasi-Newton steps carry it away (3D from 128: 3D N = 8000
 # seed 3 not certified); a 2D packing holds from 256 (2D N = 32000 seeds 0 - 4 and the mixed
-# sizes sooner in sum than from the cap; docs/convergence.md, section 3r)
+# sizes sooner in sum than from the cap; docs/research/convergence.md, section 3r)
 QN_FROM_CB = {1: CB_MAX, 2: 256.0, 3: CB_MAX}
 # ... whose multiplier step is forced after QN_MAX_INNER iterations while the max overlap is
 # above the stop's tolerance (the inner solve converges, but only a multiplier step brings the
@@ -145,7 +145,7 @@ QN_MAX_INNER = 500
 # ... and in 2D its multiplier step is damped, lambda <- max(0, lambda + QN_DUAL_STEP rho phi):
 # the inner solves of the creeping phase end far from converged (the inner residual at 2 - 7
 # times |grad W| at 2D N = 1e5), and a full step over-corrects the multipliers, whose next inner
-# solve partly undoes the motion the last one made (docs/convergence.md, section 3s: 2D N = 32000
+# solve partly undoes the motion the last one made (docs/research/convergence.md, section 3s: 2D N = 32000
 # seeds 0 - 6 12% fewer iterations in sum, six seeds sooner or the same; the 2D mixed sizes 3%).
 # In 3D it did not clearly pay (N = 2000 seeds 0 - 9 7% fewer, N = 8000 seeds 0 - 4 1% more).
 # A fixed point is unchanged: at a KKT point phi lambda = 0, phi <= 0, and lambda stays

@@ -33,7 +33,7 @@ import numpy as np
 
 # pairs (s, y) kept, by dimension: the memory costs (2m + 1) b 8 bytes per sphere (m = 5: 176
 # bytes in 2D, 264 in 3D). m = 2 in 3D (120 bytes) certified 3D N = 2000 seeds 0 - 9 in 13% more
-# iterations than m = 5 (docs/convergence.md, section 3q)
+# iterations than m = 5 (docs/research/convergence.md, section 3q)
 MEMORY = {1: 5, 2: 5, 3: 5}
 ARMIJO = 1e-4
 MAX_BACKTRACK = 4

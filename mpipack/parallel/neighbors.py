@@ -150,7 +150,7 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
     the fullest occupancy, at most all particles, plus the longest history) and sorted by
     partner gid; history partners already among the candidates take their lambda, the others
     (far partners) are inserted. No buffer is reallocated inside the candidate loop: growable
-    buffers there made the build 4x slower (measured: docs/convergence.md, section 3o). The
+    buffers there made the build 4x slower (measured: docs/research/convergence.md, section 3o). The
     candidates of the 3^b cells around a cell (positions, diameters, gids, indices) are
     gathered into one contiguous buffer and kept while the next local is in the same cell
     (the locals are sorted by cell): 10 - 30% faster builds, the same rows (section 3p).

@@ -38,9 +38,9 @@ MIN_WINDOW = 1
 # run over the contacts alone 0.34 of an iteration of the loop at 3D N = 2000, 0.24 at 3D N =
 # 8000, 0.30 there on 2 ranks, 0.43 at 2D N = 32000: the fits now take at most 5 - 9% of a run's
 # time; counting a step as 0.35 iteration certified 3D N = 2000 5.5% sooner in iterations, but
-# where the extra fits failed they cost time for nothing: docs/convergence.md, section 3p), and
+# where the extra fits failed they cost time for nothing: docs/research/convergence.md, section 3p), and
 # a check fits only when the run's multipliers leave the KKT residual within FIT_GAIN times its
-# tolerance (the fit removed at most 20x of it where it certified: docs/convergence.md, section
+# tolerance (the fit removed at most 20x of it where it certified: docs/research/convergence.md, section
 # 3h) and the budget left allows at least FIRST_FIT_STEPS steps for a run's first fit,
 # MIN_FIT_STEPS for every later one (250 certifies short runs, a fifth of 1250 - 2500
 # iterations, by a fit: section 3n; but once the budget is spent, 250-step fits left 3D N = 1e5

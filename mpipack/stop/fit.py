@@ -16,7 +16,7 @@ projected onto m >= 0 and restarted whenever the next step would turn back (O'Do
 Candes's gradient test); the residual reported is the least one met, each of an actual
 m >= 0, so it is never below the true minimum.
 
-Measured (docs/convergence.md, sections 3h and 3l): in a packed interior the run's multipliers are
+Measured (docs/research/convergence.md, sections 3h and 3l): in a packed interior the run's multipliers are
 off by the penalty's small overlaps and the fit removes nearly all of that imbalance within
 30 - 100 steps (2D N = 32000: KKT 0.10 with the run's multipliers, 0.013 with the fit's,
 all that remains on ~300 surface spheres with 2 - 3 contacts still settling). On a 3D N = 20000

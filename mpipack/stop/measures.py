@@ -30,7 +30,7 @@ def measure(s, finalize=False, empty=False, overlap_a=True):
     max_net_force = max_i |g_i|, and net_force_share = max_i |g_i|^2 / sum_i |g_i|^2, the part
     of the squared residual on the single worst sphere: near 1 / N when the residual is spread
     over the packing (multipliers off by a common factor, a breathing mode), large when a few
-    spheres carry it (a local rearrangement still under way; docs/convergence.md, section 3i).
+    spheres carry it (a local rearrangement still under way; docs/research/convergence.md, section 3i).
 
     Force imbalance = ||grad W + sum lambda grad phi|| / ||c||, c_i = sum_j lambda_ij
     |grad_i phi_ij|: the same net forces relative to the contact forces the spheres carry
