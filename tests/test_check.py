@@ -12,7 +12,7 @@ import pytest
 
 from conftest import describe, mpi_env, mpirun
 
-from mpipack.analysis import check
+from mpipack.analysis import check, footprint, stability
 from mpipack import config
 
 
@@ -34,11 +34,11 @@ def test_ode_of_two_free_spheres_daha_s_needs_c_above_4_alpha():
     alpha, beta = 0.3, 2.0
     gamma = math.sqrt(alpha * beta)
     for c, stable in ((4 * alpha * 0.99, False), (4 * alpha * 1.01, True)):
-        s = np.roots(check.ode_polynomial("daha", "S", alpha, beta, gamma, c))
+        s = np.roots(stability.ode_polynomial("daha", "S", alpha, beta, gamma, c))
         assert (s.real.max() < 0) == stable, (c, s)
-        assert check.ode_condition("daha", "S", alpha, beta, gamma, c)[3] == stable
+        assert stability.ode_condition("daha", "S", alpha, beta, gamma, c)[3] == stable
     for c, stable in ((2 * alpha * 0.99, False), (2 * alpha * 1.01, True)):
-        s = np.roots(check.ode_polynomial("daha", "S", alpha, beta, gamma, c, fixed_sphere=True))
+        s = np.roots(stability.ode_polynomial("daha", "S", alpha, beta, gamma, c, fixed_sphere=True))
         assert (s.real.max() < 0) == stable
 
 
@@ -46,12 +46,12 @@ def test_ode_of_two_free_spheres_ns_and_aha():
     a, b, c = 0.3, 3.0, 2.0
     g = math.sqrt(a * b)
     # DAHA-NS: c (alpha^2 + gamma^2 d) > 2 alpha^2 beta, Routh-Hurwitz of the cubic
-    coef = check.ode_polynomial("daha", "NS", a, b, g, c)
+    coef = stability.ode_polynomial("daha", "NS", a, b, g, c)
     assert coef == [1.0, c, a * a + g * g, 2 * a * a * b]
     # AHA-S: a centre (purely imaginary roots) for any alpha, beta; AHA-NS always stable
-    s = np.roots(check.ode_polynomial("aha", "S", 0.01, 0.01, 0.0, 0.0))
+    s = np.roots(stability.ode_polynomial("aha", "S", 0.01, 0.01, 0.0, 0.0))
     assert np.allclose(s.real, 0.0)
-    s = np.roots(check.ode_polynomial("aha", "NS", a, b, 0.0, 0.0))
+    s = np.roots(stability.ode_polynomial("aha", "NS", a, b, 0.0, 0.0))
     assert s.real.max() < 0
 
 
@@ -96,37 +96,37 @@ def test_discrete_eigenvalues_match_the_scheme(method, form, params):
     h = 1e-7
     Jac = np.column_stack([(step(fix + h * e) - step(fix - h * e)) / (2 * h) for e in np.eye(3)])
     want = np.sort(np.abs(np.linalg.eigvals(Jac)))
-    K, q, m = check.contact_gains(method, form, alpha, beta, gamma, c)
-    got = np.sort(np.abs(check.cubic_roots(K, q, m)))  # AHA: one-step, the r^{n-1} slot is z = 0
+    K, q, m = stability.contact_gains(method, form, alpha, beta, gamma, c)
+    got = np.sort(np.abs(stability.cubic_roots(K, q, m)))  # AHA: one-step, the r^{n-1} slot is z = 0
     assert np.allclose(want, got, atol=1e-6), (want, got)
     # and the cluster code on two spheres is the same map
-    P = check.cluster(2, 1, form)
-    assert abs(check.cluster_radius(P, method, alpha, beta, gamma, c) - want.max()) < 1e-6
+    P = stability.cluster(2, 1, form)
+    assert abs(stability.cluster_radius(P, method, alpha, beta, gamma, c) - want.max()) < 1e-6
 
 
 def test_ode_and_scheme_disagree_at_large_steps():
     # the paper's N = 2000 parameters: the ODE is unstable, the scheme stable (rate K/2)
     sc = config.load("paper-2d", ["n=2"])
-    t = check.two_spheres(sc)
+    t = stability.two_spheres(sc)
     assert not t["ode_ok"] and t["ok"]
     assert abs(t["rho"] - math.sqrt(1 - t["K"])) < 1e-12
     # alpha = 0.35, beta = 4: the ODE stable (c > 4 alpha), the scheme not (2K + q > 4)
-    t = check.two_spheres(two("S", alpha=0.35, beta=4.0))
+    t = stability.two_spheres(two("S", alpha=0.35, beta=4.0))
     assert t["ode_ok"] and not t["ok"]
 
 
 def test_seven_discs_cluster_matches_the_measured_buckling_edge():
     """7 DAHA-S discs, alpha = 0.04, beta = 0.15: runs certify at gamma = 0.045 and not at 0.04
     (alpha/gamma = 0.89 and 1.0); the cluster's scheme crosses 1 between them."""
-    P = check.cluster(7, 2, "S")
+    P = stability.cluster(7, 2, "S")
     assert P["contacts"] == 12 and P["residual"] < 1e-12
-    assert check.cluster_radius(P, "daha", 0.04, 0.15, 0.045, 2.0) < 1.0
-    assert check.cluster_radius(P, "daha", 0.04, 0.15, 0.040, 2.0) > 1.0
+    assert stability.cluster_radius(P, "daha", 0.04, 0.15, 0.045, 2.0) < 1.0
+    assert stability.cluster_radius(P, "daha", 0.04, 0.15, 0.040, 2.0) > 1.0
 
 
 # ---- against real runs --------------------------------------------------------------------------
 def beta_edge(scene):
-    return check._edge(lambda b: check.verdict(check.with_param(scene, "beta", b))[0], scene.method.beta, 2.0,
+    return check._edge(lambda b: stability.verdict(stability.with_param(scene, "beta", b))[0], scene.method.beta, 2.0,
                        bisect=40)
 
 
@@ -165,7 +165,7 @@ def test_decay_rate_of_a_run_is_the_spectral_radius(tmp_path):
     relative change decays at that rate."""
     sets = ['method.form="S"', "method.alpha=0.1", "method.beta=1.0", 'stop.rule="eps"', "stop.eps=0",
             "stop.max_iter=400", "output.metrics_every=1", "output.snapshots=false"]
-    rho = check.two_spheres(config.load("two-spheres", sets))["rho"]
+    rho = stability.two_spheres(config.load("two-spheres", sets))["rho"]
     assert abs(rho - math.sqrt(0.9)) < 1e-12
     proc = mpirun(1, [sys.executable, "-m", "mpipack.cli", "run", "two-spheres", "--quiet", "--out", tmp_path / "o"]
                   + sum((["--set", s] for s in sets), []), cwd=tmp_path)
@@ -191,7 +191,7 @@ def test_overlap_estimate_against_a_generated_start(sets):
     x = init.positions(sc, np.arange(sc.n, dtype=np.int64))
     r2 = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)
     actual = (np.count_nonzero(r2 < 1.0) - sc.n) / 2
-    est = check.pairs_within(sc, 1.0)
+    est = footprint.pairs_within(sc, 1.0)
     tol = 0.06 if sc.init.kind == "gaussian" else 0.25  # the lattice's boundary is ignored (upper bound)
     assert abs(est - actual) <= tol * actual, (est, actual)
 

@@ -73,7 +73,7 @@ def test_only_the_scene_kernels_are_compiled(tmp_path, sets, want, unwanted):
 def test_one_rank_never_exchanges_ghosts(monkeypatch):
     from mpipack.parallel import comm as comm_mod
     from mpipack import config
-    from mpipack.engine import loop, solver
+    from mpipack.engine import loop
 
     def forbidden(*a, **k):
         raise AssertionError("ghost exchange called on one rank")

@@ -236,13 +236,13 @@ def stability_edges():
     """Parameters just inside and just outside the stability region from ``mpipack check``'s
     analysis: two spheres DAHA-S (alpha = 0.35, gamma = sqrt(alpha beta), the exact scheme), and
     seven DAHA-S discs (alpha = 0.04, beta = 0.15, the cluster's scheme) in gamma."""
-    from mpipack.analysis import check
+    from mpipack.analysis import check, stability
     from mpipack import config
     two = config.load("two-spheres", ["method.form=\"S\"", "method.alpha=0.35", "method.beta=1.4"])
-    b_edge = check._edge(lambda b: check.verdict(check.with_param(two, "beta", b))[0], 1.4, 2.0, bisect=30)
+    b_edge = check._edge(lambda b: stability.verdict(stability.with_param(two, "beta", b))[0], 1.4, 2.0, bisect=30)
     seven = config.load("paper-2d", ["n=7", "method.form=\"S\"", "method.alpha=0.04", "method.beta=0.15",
                                      "method.gamma=0.07"])
-    g_edge = check._edge(lambda g: check.verdict(check.with_param(seven, "gamma", g))[0], 0.07, 0.5, bisect=30)
+    g_edge = check._edge(lambda g: stability.verdict(stability.with_param(seven, "gamma", g))[0], 0.07, 0.5, bisect=30)
     return b_edge, g_edge
 
 
