@@ -139,6 +139,11 @@ class Particles:
         """Largest diameter of the scene."""
         return self.diameter_max if self.diameter_max is not None else self.diameter
 
+    @property
+    def d_mean(self):
+        """The mean of the smallest and largest diameter (the length unit of the schedule's law)."""
+        return 0.5 * (self.diameter + self.d_max)
+
 
 @dataclass(frozen=True)
 class Init:

@@ -125,8 +125,8 @@ def unit_ball_measure(dim):
 
 
 def mean_diameter(scene):
-    p = scene.particles
-    return 0.5 * (p.diameter + p.d_max)
+    """``scene.particles.d_mean``."""
+    return scene.particles.d_mean
 
 
 def gaussian_sigma(scene):

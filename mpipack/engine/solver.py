@@ -33,7 +33,7 @@ from mpipack.engine.signals import stop_requested
 from mpipack.engine.timers import FORWARD, REDUCE, STEP, PhaseTimers
 from mpipack.errors import NumericalError, TooDenseError
 from mpipack.kernels import daha as kernels
-from mpipack.methods.base import for_scene
+from mpipack.methods import for_scene
 from mpipack.parallel import comm as comm_mod
 from mpipack.parallel import domain, exactsum, neighbors
 from mpipack.parallel.reduction import Reduction

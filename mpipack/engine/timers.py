@@ -43,6 +43,10 @@ def process_age_seconds():
 
 
 class PhaseTimers:
+    """Seconds per phase of the loop: ``lap(PHASE)`` adds the time since the last lap to PHASE
+    (the phases are also attributes, ``timers.STEP``, for code that only holds the timers)."""
+    STEP, REDUCE, FORWARD, EXCHANGE, BALANCE, BORDERS, ROWS, HOOKS = range(len(PHASES))
+
     def __init__(self):
         self.seconds = np.zeros(len(PHASES))
         self._last = None

@@ -10,7 +10,7 @@ refresh and rebuilds, the reductions, the loop. A method owns the rest:
     its iteration        ``iterate(solver)``: one (outer) iteration, by the solver's collective
                          operations (``Solver.advance``, ``refresh_ghosts``, ``equalise``, ...)
 
-Adding a method is adding one module with a subclass and a line in ``for_scene``.
+Adding a method is adding one module with a subclass and a line in ``methods.for_scene``.
 """
 
 from mpipack.kernels import daha as kernels
@@ -86,16 +86,3 @@ class Method:
     def work(self, iterations, inner_iterations):
         """Particle-iterations of the kernel per sphere: inner ones for the nested methods."""
         return inner_iterations if self.counts_inner else iterations
-
-
-def for_scene(scene):
-    """The method object a scene asks for (``method.name``, ``method.schedule``)."""
-    m = scene.method
-    if m.nested:
-        from mpipack.methods.nested import Nested
-        return Nested(scene)
-    if m.schedule == "fire-al":
-        from mpipack.methods.fire_al import FireAL
-        return FireAL(scene)
-    from mpipack.methods.fixed import FixedStep
-    return FixedStep(scene)

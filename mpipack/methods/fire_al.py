@@ -13,8 +13,6 @@ import math
 
 import numpy as np
 
-from mpipack.engine import initial
-from mpipack.engine.timers import REDUCE, STEP
 from mpipack.kernels import daha as kernels
 from mpipack.kernels import fire as kernels_fire
 from mpipack.kernels import lbfgs as kernels_lbfgs
@@ -35,7 +33,7 @@ class FireAL(Method):
 
     def __init__(self, scene):
         self.dim, self.n = scene.dim, scene.n
-        self.schedule = FireALSchedule(scene.n, scene.dim, initial.mean_diameter(scene),
+        self.schedule = FireALSchedule(scene.n, scene.dim, scene.particles.d_mean,
                                        scene.method.form, overlap_tol=scene.stop.overlap)
         self.kernel = kernels_fire.fire_al_step(scene.method.form, scene.dim)
         self.coeffs = FireALSchedule.NO_STEP
@@ -127,7 +125,7 @@ class FireAL(Method):
         cap = lbfgs.TRUST * self.schedule.d
         head = lb.s["head"] if lb.s["stepped"] else -1
         clipped = kernels_lbfgs.dots(st.x, st.x_new, n, st.qn, head, cap, red.acc("qn"), red.maxima("qn"))
-        t.lap(STEP)
+        t.lap(t.STEP)
         red.set_count("active", n_active)
         red.set_count("qn_clipped", clipped)
         red.reduce(solver.comm)
@@ -148,14 +146,14 @@ class FireAL(Method):
         }
         solver.common_figures(red, fig)
         coef, y_slot, s_slot, _ = lb.direction(dots, red.value("qn_slope"), red.count("qn_clipped") > 0)
-        t.lap(REDUCE)
+        t.lap(t.REDUCE)
         if coef is None:
             kernels_lbfgs.backtrack(st.x, st.x_new, n, st.qn, s_slot)
         else:
             kernels_lbfgs.direction(st.x, st.x_new, n, st.qn, coef, y_slot, s_slot, cap)
         st.rotate()
         st.lambda_fresh = False
-        t.lap(STEP)
+        t.lap(t.STEP)
         solver.moves.assume(cap)
         solver.refresh_ghosts(0.0)
         return fig
