@@ -27,7 +27,8 @@ from mpipack import config
 from mpipack.parallel import domain
 from mpipack.parallel.comm import Comm
 from mpipack.engine.hooks import Hook
-from mpipack.engine.solver import Solver, run
+from mpipack.engine.loop import run
+from mpipack.engine.solver import Solver
 
 
 def log(comm, *args):
@@ -121,7 +122,7 @@ def counter_total(s, name):
 
 
 def advance(s, n):
-    """n more iterations through the one loop (solver.run); returns the last figures."""
+    """n more iterations through the one loop (engine.loop.run); returns the last figures."""
     last = {}
     scene = s.scene.replace(stop={"eps": 0.0, "max_iter": s.state.iteration + n})
     run(scene, s.comm, hooks=[Hook(lambda ctx: last.update(ctx.figures), every=1)], solver=s)
