@@ -22,7 +22,7 @@ limit=${MPIPACK_LIMIT:-01:00:00}     # the job's wall time: as in -l walltime ab
 margin=${MPIPACK_MARGIN:-60}         # s: mpipack --walltime = the time left at launch - margin
 walltime=${MPIPACK_WALLTIME:-}       # or mpipack's --walltime outright, HH:MM:SS
 max_links=${MPIPACK_MAX_LINKS:-10}   # the most jobs one run may take
-script=${MPIPACK_SCRIPT:-jobs/pbs-chain.sh}  # this file, from the submit folder (resubmitted)
+script=${MPIPACK_SCRIPT:-jobs/pbs-chain.sh}  # this file (resubmitted), in MPIPACK_HOME or absolute
 launcher=mpirun                      # reads the nodes from PBS (Open MPI built with tm support)
 site_env() {                         # puts mpipack and MPI on PATH on the compute node
     # module load openmpi hdf5/openmpi    # e.g.; see jobs/README.md
@@ -34,6 +34,7 @@ cd "${PBS_O_WORKDIR:-.}" || exit 1
 MPIPACK_HOME=${MPIPACK_HOME:-$PWD}
 # shellcheck source=jobs/lib.sh
 . "$MPIPACK_HOME/jobs/lib.sh"
+[[ $script = /* ]] || script=$MPIPACK_HOME/$script
 # shellcheck disable=SC2086  # options: words
 mp_args "$scene" $options
 site_env

@@ -20,7 +20,7 @@ stop_pid() {  # stop_pid NAME: TERM the daemon of DIR/NAME.pid, KILL it after 10
     if kill -0 "$pid" 2>/dev/null; then
         kill "$pid" 2>/dev/null || true
         for _ in $(seq 100); do kill -0 "$pid" 2>/dev/null || break; sleep 0.1; done
-        kill -0 "$pid" 2>/dev/null && kill -9 "$pid" 2>/dev/null || true
+        if kill -0 "$pid" 2>/dev/null; then kill -9 "$pid" 2>/dev/null || true; fi
         say "stopped $1 (pid $pid)"
     fi
     rm -f "$f"
@@ -34,19 +34,20 @@ fi
 [ "$(id -u)" -eq 0 ] || { echo "cluster.sh: must run as root (slurmd)" >&2; exit 1; }
 command -v slurmctld >/dev/null || { echo "cluster.sh: slurmctld not installed (run tools/slurm/setup.sh)" >&2; exit 1; }
 
-# ---- munge: Slurm's authentication; reuse a running munged, else start one on this folder
-mkdir -p "$dir/spool" "$dir/state" "$dir/munge"
+# ---- munge: Slurm's authentication; reuse a running munged, else start one (stopped by "stop")
+mkdir -p "$dir/spool" "$dir/state"
 if ! munge -n 2>/dev/null | unmunge >/dev/null 2>&1; then
     if [ ! -s /etc/munge/munge.key ]; then
         dd if=/dev/urandom bs=1 count=1024 of=/etc/munge/munge.key status=none
         chown munge:munge /etc/munge/munge.key; chmod 400 /etc/munge/munge.key
     fi
-    mkdir -p /run/munge; chown munge:munge /run/munge; chmod 755 /run/munge
-    chown munge:munge "$dir/munge"
-    runuser -u munge -- /usr/sbin/munged --pid-file="$dir/munge/munged.pid" \
-        --log-file="$dir/munge/munged.log" --seed-file="$dir/munge/munged.seed"
-    for _ in $(seq 50); do [ -s "$dir/munge/munged.pid" ] && break; sleep 0.1; done
-    cp "$dir/munge/munged.pid" "$dir/munged.pid"
+    mkdir -p /run/munge /var/log/munge /var/lib/munge
+    chown munge:munge /run/munge /var/log/munge /var/lib/munge
+    rm -f /run/munge/munged.pid
+    # munged's own files where the package puts them (user munge cannot enter a private /tmp folder)
+    runuser -u munge -- /usr/sbin/munged
+    for _ in $(seq 50); do [ -s /run/munge/munged.pid ] && break; sleep 0.1; done
+    cp /run/munge/munged.pid "$dir/munged.pid"
     munge -n | unmunge >/dev/null || { echo "cluster.sh: munged does not answer" >&2; exit 1; }
     say "started munged (pid $(cat "$dir/munged.pid"))"
 fi
