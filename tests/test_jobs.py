@@ -193,7 +193,7 @@ def test_signal_cancel_resubmit(slurm, work, single):
 def test_shellcheck():
     """shellcheck (following jobs/lib.sh) finds nothing in the job scripts and tools/slurm."""
     if shutil.which("shellcheck") is None:
-        pytest.skip("shellcheck is not installed (bash tools/slurm/setup.sh installs it)")
+        _unavailable("shellcheck is not installed (bash tools/slurm/setup.sh installs it)")
     scripts = sorted(str(p.relative_to(REPO)) for p in (*JOBS.glob("*.sh"), *(REPO / "tools" / "slurm").glob("*.sh")))
     assert len(scripts) >= 9, scripts
     p = subprocess.run(["shellcheck", "-x", *scripts], cwd=REPO, capture_output=True, text=True, timeout=120)
