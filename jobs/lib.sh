@@ -5,6 +5,10 @@
 # per job, a launch that forwards the scheduler's signals, the exit code, the chain's decision
 # and its log. The script sets its settings (scene, sets, launcher, ...) and MP_RANKS first.
 
+# SIGUSR1 before the launch (a job shorter than the signal's lead): not fatal; --walltime stops
+# the run in time
+trap 'mp_log "SIGUSR1 before the launch: the --walltime backstop will stop the run"' USR1
+
 # ---- the run's arguments -------------------------------------------------------------------
 # mp_args [SCENE] [OPTIONS...]: a first argument not starting with "-" is the scene; the rest are
 # passed to every `mpipack run` of the job (e.g. --seed 3 --dump final.npz). Sets MP_SETS (the
@@ -126,16 +130,18 @@ mp_run() {
     wait "$pid"
     MP_CODE=$?
     while kill -0 "$pid" 2>/dev/null; do wait "$pid"; MP_CODE=$?; done  # a signal ended the wait
-    trap - USR1 TERM INT
+    trap - TERM INT
+    trap : USR1
     # summary.json has mpipack's own code (mpirun reports 1 for ranks that it stopped with
     # SIGTERM after they checkpointed and wrote exit status 5)
+    MP_ITER=""
     if [ "$dir/summary.json" -nt "$stamp" ]; then
         local c
         c=$(mp_field "$dir/summary.json" exit_code)
         [ -z "$c" ] || MP_CODE=$c
+        MP_ITER=$(mp_field "$dir/summary.json" iterations)
     fi
     rm -f "$stamp"
-    MP_ITER=$(mp_field "$dir/summary.json" iterations)
     mp_log "exit $MP_CODE: $(mp_meaning "$MP_CODE") at iteration ${MP_ITER:-?}"
 }
 

@@ -26,7 +26,7 @@ site_env() {                         # puts mpipack and MPI on PATH on the compu
     . "$MPIPACK_HOME/tools/env.sh"
 }
 # ---------------------------------------------------------------------------------------------
-set -uo pipefail
+set -o pipefail  # (no -u: bash 4.2 of older clusters calls an empty array unbound)
 cd "${SLURM_SUBMIT_DIR:-.}" || exit 1
 MPIPACK_HOME=${MPIPACK_HOME:-$PWD}
 # shellcheck source=jobs/lib.sh

@@ -91,7 +91,10 @@ def test_single_run(single):
     summary = json.loads((single["run_dir"] / "summary.json").read_text())
     assert summary["exit_code"] == 0 and summary["converged"] is True, summary
     assert summary["ranks"] == 2 and summary["n"] == 10000 and summary["seed"] == 3
-    assert "Numba cache warm" in single["out"] and "srun --mpi=pmix -n 2 mpipack run" in single["out"]
+    assert single["out"].count("Numba cache warm") == 1
+    # srun on the job's 2 tasks; the --walltime backstop is Slurm's time left (of 5 min) - 60 s
+    assert re.search(r"launch: srun --mpi=pmix -n 2 mpipack run default --out \S+ --walltime 00:0[34]:\d\d ",
+                     single["out"]), single["out"]
     assert (single["run_dir"] / "snapshots.h5").exists()
 
 
@@ -114,6 +117,7 @@ def test_chain_bitwise(slurm, work, single):
     ends = [int(i) for i in re.findall(r"exit 5: stopped with a checkpoint at iteration (\d+)", text)]
     starts = [int(i) for i in re.findall(r"restart from the checkpoint of iteration (\d+)", text)]
     assert len(ends) == len(links) - 1 and starts == ends, text
+    assert text.count("Numba cache warm") == len(links), text  # once per job
     assert re.search(r"exit 0: converged \(certified\) at iteration \d+", text), text
     for job, it in zip(jobs[1:], starts):  # mpipack itself restarted where the last link stopped
         assert f"restart from iteration {it}" in read(work / f"mpipack-{job}.out"), job
