@@ -121,12 +121,10 @@ mp_run() {
     mp_log "launch: ${MP_LAUNCH[*]} mpipack run ${args[*]} ${MP_EXTRA[*]}"
     "${MP_LAUNCH[@]}" mpipack run "${args[@]}" "${MP_EXTRA[@]}" &  # $! is the launcher's pid
     pid=$!
-    # shellcheck disable=SC2064  # the pid is fixed now
-    trap "MP_GOT=USR1; mp_log 'SIGUSR1: the job nears its limit; asking mpipack to checkpoint'; kill -USR1 $pid 2>/dev/null" USR1
-    # shellcheck disable=SC2064
-    trap "MP_GOT=TERM; mp_log 'SIGTERM (scancel, qdel, bkill or the limit): asking mpipack to checkpoint'; kill -TERM $pid 2>/dev/null" TERM
-    # shellcheck disable=SC2064
-    trap "MP_GOT=INT; kill -INT $pid 2>/dev/null" INT
+    MP_PID=$pid
+    trap '_mp_forward USR1 "SIGUSR1: the job nears its limit; asking mpipack to checkpoint"' USR1
+    trap '_mp_forward TERM "SIGTERM (scancel, qdel, bkill or the limit): asking mpipack to checkpoint"' TERM
+    trap '_mp_forward INT' INT
     wait "$pid"
     MP_CODE=$?
     while kill -0 "$pid" 2>/dev/null; do wait "$pid"; MP_CODE=$?; done  # a signal ended the wait
@@ -143,6 +141,12 @@ mp_run() {
     fi
     rm -f "$stamp"
     mp_log "exit $MP_CODE: $(mp_meaning "$MP_CODE") at iteration ${MP_ITER:-?}"
+}
+
+_mp_forward() {  # _mp_forward SIGNAL [MESSAGE]: note it, say it, pass it on to the launcher
+    MP_GOT=$1
+    [ -z "${2:-}" ] || mp_log "$2"
+    kill -"$1" "$MP_PID" 2>/dev/null
 }
 
 # ---- the chain's decision ------------------------------------------------------------------
@@ -163,8 +167,10 @@ mp_decide() {
             else
                 MP_NEXT=1
             fi ;;
-        3) mp_log "chain ends: numerical trouble, see the job output and $dir/summary.json (the last good state is checkpointed)" ;;
-        4) mp_log "chain ends: not certified within its bound (stop.max_iter or stop.max_seconds); to continue, $again and a larger bound in sets" ;;
+        3) mp_log "chain ends: numerical trouble, see the job output and $dir/summary.json" \
+               "(the last good state is checkpointed)" ;;
+        4) mp_log "chain ends: not certified within its bound (stop.max_iter or stop.max_seconds);" \
+               "to continue, $again and a larger bound in sets" ;;
         2) mp_log "chain ends: bad input, see the job output" ;;
         *) mp_log "chain ends: exit $MP_CODE, $(mp_meaning "$MP_CODE"), see the job output" ;;
     esac
