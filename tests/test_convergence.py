@@ -51,6 +51,15 @@ def test_the_fewest_spheres_certify(tmp_path, n, dim, seed):
     assert brute_force_figures(d)[1] <= 1e-3
 
 
+@pytest.mark.parametrize("ranks,seed", [(1, 1), (1, 4), (2, 4), (3, 1)])
+def test_one_sphere_is_a_packing(tmp_path, ranks, seed):
+    """N = 1: W is 0 up to rounding (-0.0 and below were a math domain error in the schedule);
+    the run certifies at once on any rank count (two of three ranks own nothing)."""
+    proc, s, d = mpipack_run(ranks, tmp_path, None, ["n=1", f"seed={seed}", "output.snapshots=false"], dump=True)
+    assert proc.returncode == 0, describe(proc)
+    assert s["converged"] and s["max_overlap"] == 0.0 and d["x"].shape == (1, 2)
+
+
 def test_a_run_that_cannot_certify_says_why(tmp_path):
     """A run whose iteration bound comes before its certificate (3D N = 100 seed 0 certifies
     at 3400, no 3D N = 100 run in 10 seeds before 1600): exit 4, 'not converged', and the

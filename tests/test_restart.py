@@ -57,6 +57,25 @@ def test_restart_on_other_rank_counts_is_bitwise(tmp_path, case, total, split, r
         assert s2["schedule"] == s_ref["schedule"]
 
 
+@pytest.mark.parametrize("split,ranks", [(1, (1, 2)), (2, (2, 3)), (3, (3, 1)), (6, (1, 1)), (9, (2, 2))])
+def test_restart_from_the_first_iterations_is_bitwise(tmp_path, split, ranks):
+    """A checkpoint that a bound writes in the fire-al schedule's first phase (the start and the
+    explosion, whose dual gain changes every iteration) continues bit for bit: the checkpoint
+    holds the state as the loop left it, before the final figures update the multipliers."""
+    sets = ["n=300", "--seed", "4"]
+    p_ref, s_ref, d_ref = run_cli(1, tmp_path / "ref", sets[:1], extra=sets[1:])
+    assert p_ref.returncode == 0 and s_ref["converged"], describe(p_ref)
+    first, second = ranks
+    p1, s1, _ = run_cli(first, tmp_path / "run", [sets[0], f"stop.max_iter={split}"], extra=sets[1:])
+    assert p1.returncode == 4 and s1["checkpoint"]["iteration"] == split, describe(p1)
+    assert s1["schedule"]["phase"] != "fire" or split > 3, s1["schedule"]
+    p2, s2, d2 = run_cli(second, tmp_path / "run", ["stop.max_iter=auto"],
+                         extra=["--restart", tmp_path / "run" / "out"])
+    assert p2.returncode == 0, describe(p2)
+    assert s2["iterations"] == s_ref["iterations"] and s2["W"] == s_ref["W"]
+    assert_bitwise_equal(d_ref, d2, f"stopped at {split} on {first} rank(s), continued on {second}")
+
+
 def test_restart_refuses_a_change_of_physics(tmp_path):
     p1, s1, _ = run_cli(1, tmp_path, ["n=50", "stop.max_iter=20", "output.checkpoint_every=20"] + FIXED)
     assert p1.returncode == 0, describe(p1)

@@ -11,7 +11,7 @@ One JSON row per probe: iteration, max overlap, W, "run" (the run's multipliers)
 fit length k "fit<k>" (the least residual met in k FISTA steps from the run's multipliers,
 ``measures.best_kkt`` with the stall rule relaxed) and "s<k>" (its seconds). The run itself is
 the scene's (the probes change nothing in its state), but it does not stop at its certificate
-(the stop rule is set to (4.3) with eps = 0, so it runs to --last). docs/convergence.md,
+(the stop rule is set to (4.3) with eps = 0, so it runs to --last). docs/research/convergence.md,
 section 3o: on 2D N = 32000 seed 2 the configuration was within 1e-2 from about iteration
 57500, the certificate fired at 69150.
 """

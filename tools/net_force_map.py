@@ -11,7 +11,7 @@ share by contact count and by distance from the centre of mass, and with --from 
 percentiles of the displacements. The picture (2D; in 3D the slab |z - zbar| < d_max) colours
 the spheres by log10 net force, and with --from a second panel by log10 displacement: grains of a
 2D polycrystal that still slide show as uniform patches with their rotation centres, the
-residual along their boundaries (docs/convergence.md, section 3i).
+residual along their boundaries (docs/research/convergence.md, section 3i).
 """
 
 import argparse

@@ -6,6 +6,8 @@ A hook is a callable ``fn(ctx)`` with a schedule:
     every      run after every K-th iteration (iteration % K == 0)
     wall_dt    run when the loop's wall clock has passed the next multiple of T seconds
     at_start   run once after set-up, before the first iteration (ctx.figures is empty)
+    at_stop    run once when the loop has stopped (ctx.stop_reason says why), before the final
+               figures touch the state: a checkpoint written here continues the run bit for bit
     at_end     run once after the loop, when the final figures are in ctx.result
 
 The loop calls hooks on every rank at the same iterations: the wall clock it uses is the
@@ -34,13 +36,14 @@ class Context:
 
 
 class Hook:
-    def __init__(self, fn, every=None, wall_dt=None, at_start=False, at_end=False, name=None):
+    def __init__(self, fn, every=None, wall_dt=None, at_start=False, at_stop=False, at_end=False, name=None):
         if every is not None and every < 1:
             raise ValueError("hook 'every' must be >= 1")
         self.fn = fn
         self.every = every
         self.wall_dt = wall_dt if wall_dt else None
         self.at_start = at_start
+        self.at_stop = at_stop
         self.at_end = at_end
         self.name = name or getattr(fn, "__name__", "hook")
         self._next_wall = wall_dt if wall_dt else None

@@ -6,6 +6,7 @@
       hooks     whatever is due: progress, output, metrics, the wall-time limit (``hooks``)
       stop      the stop rule's decision (``stop.rule``): certified, eps, max_iter,
                 max_seconds, a signal, a hook's request; the watchdog's verdict
+    stopped     at_stop hooks (the checkpoint of a signal, the wall time or a bound)
     end         final figures, the certificate, the result
 """
 
@@ -59,6 +60,9 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
     ctx.stop_reason = reason
     loop_seconds = time.perf_counter() - t_loop
     timers.stop()
+    for h in hooks:  # e.g. the checkpoint of a stop: the state as the loop left it
+        if h.at_stop:
+            h(ctx)
     final = solver.finish()
     certificate = rule.final(solver, final, reason)
     # the KKT residual reported is the certificate's (the best multipliers' when they were

@@ -92,9 +92,25 @@ class Checkpoints:
         self.last_seconds = None  # wall seconds of the last write (for the wall-time margin)
 
     def hooks(self):
-        if self.every <= 0:
-            return []
-        return [Hook(lambda ctx: self.write(ctx.solver), every=self.every, name="checkpoint")]
+        out = [Hook(self._at_stop, at_stop=True, name="checkpoint-at-stop")]
+        if self.every > 0:
+            out.append(Hook(lambda ctx: self.write(ctx.solver), every=self.every, name="checkpoint"))
+        return out
+
+    def keeps(self, reason):
+        """A stop whose state a later run continues: a signal or the wall time (exit 5), a bound
+        reached first (exit 4); not the requested iterations of stop.eps = 0 (exit 0)."""
+        stop = self.scene.stop
+        if reason in ("signal", "walltime"):
+            return True
+        return reason in ("max_iter", "max_seconds") and not (stop.rule == "eps" and stop.eps == 0)
+
+    def _at_stop(self, ctx):
+        """The checkpoint of a stop, written before anything else: the state exactly as the loop
+        left it (the final figures update the multipliers), and within a scheduler's grace
+        period (nothing costly comes first)."""
+        if self.keeps(ctx.stop_reason):
+            self.write(ctx.solver)
 
     def write(self, solver):
         """Collective. Returns the seconds the write took."""

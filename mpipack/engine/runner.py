@@ -326,14 +326,12 @@ def _execute(comm, args, scene, state, out, walltime):
         if snapshots is not None:
             snapshots.write(solver, solver.state.iteration, wall, {})
     if res is not None:
+        # the checkpoint of a signal, the wall time or a bound was written when the loop
+        # stopped (``output.Checkpoints.keeps``), before the final figures
         if res["stop_reason"] in ("signal", "walltime"):
-            checkpoints.write(solver)
             code = EXIT_CHECKPOINTED
         elif code is None:
             code = exit_code(scene, res)
-            if code == EXIT_NOT_CONVERGED and res["stop_reason"] in BOUND_STOPS:
-                # a bound came first: keep the state, so that a larger bound can continue it
-                checkpoints.write(solver)
         summary.update(result_summary(scene, comm, res, wall, args.profile))
     if checkpoints.last_iteration is not None:
         files.append(checkpoints.path)
@@ -431,7 +429,8 @@ def print_result(scene, res, wall, summary_path, code, checkpoints):
         lines.append(f"  stopped by {res['stop_reason']}: checkpoint of iteration "
                      f"{checkpoints.last_iteration} in {checkpoints.path}; continue with "
                      f"mpipack run --restart {os.path.dirname(checkpoints.path)}")
-    elif res["stop_reason"] in BOUND_STOPS and checkpoints.last_iteration == res["iterations"]:
+    elif (code == EXIT_NOT_CONVERGED and res["stop_reason"] in BOUND_STOPS
+          and checkpoints.last_iteration == res["iterations"]):
         bound = "stop.max_iter" if res["stop_reason"] == "max_iter" else "stop.max_seconds"
         lines.append(f"  checkpoint of iteration {checkpoints.last_iteration} in {checkpoints.path}; "
                      f"continue with mpipack run --restart {os.path.dirname(checkpoints.path)} "

@@ -283,7 +283,7 @@ class FireALSchedule:
                 s.pending = [Request.RESET_LAMBDA, Request.RESTART]
             return
         was_dual = s.dual_now
-        grad_w = math.sqrt(2.0 * fig["W"])
+        grad_w = math.sqrt(2.0 * max(fig["W"], 0.0))  # W >= 0 up to rounding (N = 1: W = -0.0...)
         s.since_dual += 1
         s.dual_now = False
         if s.qn:

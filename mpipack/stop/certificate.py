@@ -145,11 +145,12 @@ class Certifier:
         crit["kkt"].update(multipliers=multipliers, run_value=kkt_run)
         return crit
 
-    def final(self, solver, iteration, final_fig, fired):
+    def final(self, solver, iteration, final_fig, fired, fit=True):
         """The certificate of the final state (final_fig from ``measures.finish``). When the
         loop stopped on a certified check (``fired``), that check's verdict is the one
         reported: the final figures are of the same configuration. Otherwise the final state
-        gets its own, with a multiplier fit whatever the fits' budget (one fit more)."""
+        gets its own, with a multiplier fit whatever the fits' budget (one fit more; none with
+        ``fit`` False)."""
         if fired and self.last is not None and self.last["iteration"] == iteration:
             return self.last["criteria"]
-        return self.certificate(solver, iteration, final_fig)
+        return self.certificate(solver, iteration, final_fig, fit=fit)

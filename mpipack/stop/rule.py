@@ -80,8 +80,11 @@ class StopRule:
             raise NumericalError(message, solver, kind)
 
     def final(self, solver, final_fig, reason):
-        """The certificate of the final state (``stop.certificate.Certifier.final``)."""
-        return self.certifier.final(solver, solver.state.iteration, final_fig, reason == "certified")
+        """The certificate of the final state (``stop.certificate.Certifier.final``). A run
+        stopped by a signal or its wall time is about to be ended by its scheduler: no
+        multiplier fit (seconds to minutes at large N), the run's own multipliers."""
+        return self.certifier.final(solver, solver.state.iteration, final_fig, reason == "certified",
+                                    fit=reason not in ("signal", "walltime"))
 
     def save(self):
         """The rule's state for a checkpoint (JSON-able; keys of the checkpoint's ``extra``)."""
