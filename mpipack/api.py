@@ -68,6 +68,8 @@ def run(scene=None, *, comm=None, out=None, seed=None, overrides=(), options=Non
     """
     from mpipack.engine import runner
     from mpipack.parallel.comm import Comm
+    from mpipack.stop.signals import clear_stop_request
+    clear_stop_request()  # a signal that stopped an earlier run of this process is spent
     values = {**(options or {}), **_dotted(settings)}
     request = runner.RunRequest(scene=scene, overrides=tuple(overrides), settings=values, seed=seed,
                                 out=out, dump=dump, quiet=quiet, profile=profile, restart=restart,

@@ -113,3 +113,64 @@ def step_each(s, n, fn):
     _, res = loop.run(scene, s.comm, hooks=[hooks.Hook(lambda ctx: fn(ctx.figures), every=1)],
                             solver=s)
     return res
+
+
+# ---- markers -------------------------------------------------------------------------------
+# tests of 3 s or more on this 2-core machine (pytest --durations=0, the whole suite,
+# 2026-11-27): the fast lane, pytest -m "not slow", leaves them out (about 3 minutes instead of
+# 13); CI runs everything. The Slurm tests mark themselves (tests/test_jobs.py).
+SLOW = {
+    "tests/test_api.py::test_keyword_overrides_and_options",
+    "tests/test_api.py::test_the_readme_example_runs_on_any_rank_count",
+    "tests/test_check.py::test_two_sphere_verdict_against_runs",
+    "tests/test_compare.py::test_compare_quick",
+    "tests/test_compare.py::test_compare_with_a_peer_curve",
+    "tests/test_convergence.py::test_a_run_that_cannot_certify_says_why",
+    "tests/test_convergence.py::test_defaults_certify",
+    "tests/test_convergence.py::test_the_schedule_does_not_depend_on_the_length_unit",
+    "tests/test_convergence_sweep.py::test_a_run_beyond_the_timeout_stops_itself_with_its_figures",
+    "tests/test_convergence_sweep.py::test_a_run_that_does_not_stop_itself_is_reported_as_killed",
+    "tests/test_io.py::test_checkpoint_survives_a_rank_killed_mid_write",
+    "tests/test_io.py::test_snapshots_by_gid",
+    "tests/test_kernels_fire.py::test_fire_kernel_matches_reference",
+    "tests/test_least_kkt_trace.py::test_long_fits_bound_the_run_and_each_other",
+    "tests/test_metrics.py::test_force_imbalance_is_the_net_force_over_the_contact_forces",
+    "tests/test_metrics.py::test_metrics_rows_approach_the_optimum_and_are_rank_independent",
+    "tests/test_metrics.py::test_the_certificate_uses_the_force_multipliers_of_pairs_in_contact",
+    "tests/test_nested.py::test_same_bits_on_1_2_3_ranks",
+    "tests/test_net_force.py::test_net_force_is_the_kkt_residual_per_sphere_on_1_2_3_ranks",
+    "tests/test_pair_store.py::test_pairs_survive_migration_on_1_2_3_ranks",
+    "tests/test_paper.py::test_paper_quick_report",
+    "tests/test_parallel.py::test_bad_scene_file_exits_2",
+    "tests/test_parallel.py::test_certified_by_fitted_multipliers_on_1_2_3_ranks",
+    "tests/test_parallel.py::test_default_scene_converges_on_2_ranks",
+    "tests/test_parallel.py::test_same_bits_on_1_2_3_ranks",
+    "tests/test_parallel.py::test_shortened_lbfgs_steps_same_bits_on_1_2_3_ranks",
+    "tests/test_peers_side.py::test_a_chained_ladder_passes_through_the_same_states",
+    "tests/test_restart.py::test_a_run_stopped_by_its_iteration_bound_can_be_continued",
+    "tests/test_restart.py::test_coincident_centres_are_separated_the_same_on_any_rank_count",
+    "tests/test_restart.py::test_restart_on_other_rank_counts_is_bitwise",
+    "tests/test_restart.py::test_restart_refuses_a_change_of_physics",
+    "tests/test_restart.py::test_sigusr1_checkpoints_every_rank_and_exits_5",
+    "tests/test_restart.py::test_walltime_checkpoints_before_the_limit",
+    "tests/test_suite.py::test_quick_suite",
+    "tests/test_watchdog.py::test_a_restart_keeps_the_watchdogs_count",
+    "tests/test_watchdog.py::test_aha_s_cycle_exits_3_on_any_rank_count",
+    "tests/test_watchdog.py::test_the_watchdog_can_be_turned_off",
+}
+# a test that launches mpirun (through these helpers or itself) is an MPI test
+MPI_WORDS = ("mpirun", "mpipack_run", "run_mpipack", "run_cli(", "long_run(", "mpi_script")
+
+
+def pytest_collection_modifyitems(config, items):
+    import inspect
+    for item in items:
+        base = item.nodeid.split("[")[0]
+        if base in SLOW:
+            item.add_marker(pytest.mark.slow)
+        try:
+            source = inspect.getsource(item.function)
+        except (OSError, TypeError):
+            continue
+        if any(w in source for w in MPI_WORDS):
+            item.add_marker(pytest.mark.mpi)

@@ -214,3 +214,33 @@ def test_a_run_stopped_by_its_iteration_bound_can_be_continued(tmp_path):
     assert p2.returncode == 4 and s2["iterations"] == 900, describe(p2)
     assert_bitwise_equal(d_ref, d2, "400 iterations on 1 rank, then to 900 on 2")
     assert s2["W"] == s_ref["W"] and s2["certificate"] == s_ref["certificate"]
+
+
+def test_a_signal_during_a_checks_fit_stops_at_once_and_the_restart_makes_the_check(tmp_path):
+    """A stop request that arrives while a certificate check fits its multipliers (thousands of
+    steps at large N: seconds to minutes, beyond a scheduler's grace period) ends the fit on every
+    rank and the run at once (exit 5, checkpoint of that iteration); the restart makes the check
+    first and continues bit for bit as the run never stopped."""
+    import mpipack
+    from mpipack.engine.hooks import Hook
+    from mpipack.stop import signals
+
+    seen = []
+    record = Hook(lambda ctx: seen.append((ctx.iteration, ctx.solver.stop_rule.certifier.fit_steps)), every=1)
+    scene = dict(seed=0, n=100, dim=3)  # its check at iteration 1400 fits (280 steps); certified at 5150
+    ref = mpipack.run("default", hooks=[record], gather=True, **scene)
+    assert ref.converged
+    fits = [it for (it, f), (_, f_next) in zip(seen, seen[1:]) if f_next > f]
+    assert fits, "the reference run fitted no multipliers"
+    at = fits[0]  # the decision of iteration `at` ran a fit
+
+    def signal_at(ctx):
+        if ctx.iteration == at:
+            signals.request_stop()  # as a handler would, while the iteration's decisions run
+    out = str(tmp_path / "run")
+    cut = mpipack.run("default", out=out, hooks=[Hook(signal_at, every=1)], **scene)
+    assert cut.exit_code == 5 and cut.stop_reason == "signal" and cut.iterations == at, cut.summary
+    assert cut.summary["checkpoint"]["iteration"] == at
+    again = mpipack.run(restart=out, gather=True)
+    assert again.exit_code == 0 and again.iterations == ref.iterations and again.figures["W"] == ref.figures["W"]
+    assert_bitwise_equal(ref.particles, again.particles, "signal during a fit, then restart")

@@ -107,6 +107,11 @@ def _parser():
 
 
 def main(argv=None):
+    if argv is None and sys.argv[1:2] == ["run"]:
+        # at once: a scheduler's signal during the set-up (imports, the numba cache, the
+        # scene) stops the run after its first iteration, with a checkpoint and a message
+        from mpipack.stop.signals import install_handlers
+        install_handlers()
     args = _parser().parse_args(argv)
     if args.command == "scenes":
         from mpipack import config

@@ -45,7 +45,7 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
         if h.at_start:
             h(ctx)
     first_iteration = math.nan
-    reason = rule.before(solver.state.iteration)
+    reason = rule.before(solver)
     while reason is None:
         fig = solver.step()
         if first_iteration != first_iteration:  # NaN until the first iteration is done

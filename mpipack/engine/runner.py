@@ -221,7 +221,7 @@ def execute(comm, args):
 def run_request(comm, args):
     """One run on every rank of ``comm`` (args: a ``RunRequest``); returns its ``Outcome``."""
     from mpipack import config
-    from mpipack.engine.signals import install_handlers
+    from mpipack.stop.signals import install_handlers, restore_handlers
     rank0 = comm.rank == 0
     err, scene, state, walltime = None, None, None, None
     try:
@@ -245,7 +245,7 @@ def run_request(comm, args):
         err = comm.bcast_object(err)
         if err:
             return Outcome(fail(comm, EXIT_INPUT, err), err)
-    install_handlers()
+    previous = install_handlers()
     try:
         return _execute(comm, args, scene, state, out, walltime)
     except SystemExit:
@@ -260,6 +260,8 @@ def run_request(comm, args):
         if comm.size > 1:
             comm.abort(EXIT_INTERNAL)
         return Outcome(EXIT_INTERNAL, repr(e), summary, None, path)
+    finally:
+        restore_handlers(previous)
 
 
 def fail(comm, code, message):

@@ -29,7 +29,6 @@ import numpy as np
 from mpipack.engine import initial as init
 from mpipack.engine import memory
 from mpipack.engine import rebuild as rebuild_mod
-from mpipack.engine.signals import stop_requested
 from mpipack.engine.timers import FORWARD, REDUCE, STEP, PhaseTimers
 from mpipack.errors import NumericalError, TooDenseError
 from mpipack.kernels import daha as kernels
@@ -38,6 +37,7 @@ from mpipack.parallel import comm as comm_mod
 from mpipack.parallel import domain, exactsum, neighbors
 from mpipack.parallel.reduction import Reduction
 from mpipack.parallel.state import State
+from mpipack.stop.signals import stop_requested
 
 # a run diverges when its radius of gyration exceeds this multiple of its natural size
 DIVERGENCE_FACTOR = 1e4

@@ -77,11 +77,12 @@ class Certifier:
         the run is younger than its window."""
         target = iteration - self.window(iteration)
         h = self.w_history
-        while len(h) > 1 and h[1][0] <= target:  # targets only grow: older records can go
-            h.popleft()
         if not h or h[0][0] > target:
             return math.inf
-        old = h[0][1]
+        k = 0  # the latest record at least a window old (a read: ``record`` prunes)
+        while k + 1 < len(h) and h[k + 1][0] <= target:
+            k += 1
+        old = h[k][1]
         if w == old:  # also W = 0 throughout (one sphere, or nothing to pull together)
             return 0.0
         if not (w > 0):

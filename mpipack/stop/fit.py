@@ -39,6 +39,7 @@ import numpy as np
 from mpipack.parallel import comm as comm_mod
 from mpipack.kernels import fit as kernels_fit
 from mpipack.parallel.reduction import Reduction
+from mpipack.stop.signals import Interrupted, stop_requested
 
 MAX_STEPS = 2000  # the fit's steps at most
 # ... and it stops once its least residual has not fallen by STALL_GAIN over STALL_STEPS steps
@@ -70,7 +71,8 @@ def best_kkt(s, mode, pen, lam_floor, gw2, target, max_steps=None):
     m_prev = np.zeros_like(m)  # the last projected gradient step
     g = np.zeros_like(m)
     r = np.zeros((st.x.shape[0], s.dim))  # the residual per particle, ghost rows refreshed
-    red = Reduction().add_exact("fit", [("r2", 1), ("turn", 1)]).add_max("fit", [("row", 1)])
+    red = Reduction().add_exact("fit", [("r2", 1), ("turn", 1)]).add_max("fit", [("row", 1)]) \
+        .add_max("stop", [("stop_request", 1)], fill=stop_requested)
 
     def one_step(length, beta):
         """The step from y = m (see ``kernels_fit``), then r and g at the new y and the
@@ -81,6 +83,8 @@ def best_kkt(s, mode, pen, lam_floor, gw2, target, max_steps=None):
         gradient(st.x, n_local, c_offsets, c_j, m, m_prev, length, r, g, red.acc("fit"),
                  red.maxima("fit"))
         red.reduce(comm)
+        if red.max("stop_request") > 0:  # a signal on some rank: every rank ends the fit here
+            raise Interrupted("the multiplier fit was interrupted by a stop request")
         return red.value("r2")
 
     if not gw2 > 0:

@@ -15,6 +15,11 @@ After iteration n + 1 (figures ``fig``, reduced, the same on every rank), in thi
 
 Every input is a reduced value, so every rank stops on the same iteration. "converged" is a
 separate verdict (``final``): the final state meets the certificate, whatever stopped the loop.
+
+A signal that arrives during a certificate check's multiplier fit ends the fit on every rank
+(``stop.signals.Interrupted``) and the run at once: the check is kept as pending in the
+checkpoint, and a restart makes it first, before its first iteration, then takes the rest of
+that iteration's decisions: the same decisions as a run never stopped.
 """
 
 import math
@@ -22,6 +27,7 @@ import math
 from mpipack.errors import NumericalError
 from mpipack.stop import watchdog as watchdog_mod
 from mpipack.stop.certificate import Certifier
+from mpipack.stop.signals import Interrupted
 
 
 class StopRule:
@@ -33,15 +39,23 @@ class StopRule:
         self.certified_rule = self.stop.rule == "certified"
         self.certifier = Certifier(self.stop)
         self.watchdog = make_watchdog(solver, scene)
+        self.pending = None  # the figures of an iteration whose check a signal cut short
         if saved:  # a restart: the same decisions as the run it continues
             if "certifier" in saved:
                 self.certifier.restore(saved["certifier"])
             if self.watchdog is not None and "watchdog" in saved:
                 self.watchdog.restore(saved["watchdog"])
+            self.pending = saved.get("pending_check")
 
-    def before(self, iteration):
-        """The reason not to start an iteration at all (a restart at its bound), or None."""
-        return "max_iter" if iteration >= self.stop.max_iter else None
+    def before(self, solver):
+        """The reason not to start an iteration at all, or None: a check that a signal cut short
+        (made now, with the rest of its iteration's decisions), or a restart at its bound."""
+        if self.pending is not None:
+            fig, self.pending = dict(self.pending), None
+            reason = self._from_check(solver, fig)
+            if reason is not None:
+                return reason
+        return "max_iter" if solver.state.iteration >= self.stop.max_iter else None
 
     def decide(self, solver, fig, hook=None):
         """The reason to stop after this iteration (see the module docstring), or None.
@@ -53,9 +67,19 @@ class StopRule:
             reason = "signal"
         if reason is None and stop.max_seconds > 0 and fig["wall"] >= stop.max_seconds:
             reason = "max_seconds"  # the wall clock is reduced: collective
-        if reason is None and it % stop.check_every == 0:
-            if self.certifier.check(solver, fig) and self.certified_rule:
-                reason = "certified"
+        return reason if reason is not None else self._from_check(solver, fig)
+
+    def _from_check(self, solver, fig):
+        """The decisions of an iteration from its certificate check on."""
+        stop, it = self.stop, fig["iteration"]
+        reason = None
+        if it % stop.check_every == 0:
+            try:
+                if self.certifier.check(solver, fig) and self.certified_rule:
+                    reason = "certified"
+            except Interrupted:  # the check is made again by the run that continues this one
+                self.pending = {k: v for k, v in fig.items()}
+                return "signal"
         if reason is None and not self.certified_rule and stop.eps > 0 and fig["relative_change"] < stop.eps:
             reason = "eps"
         if reason is None and self.watchdog is not None:
@@ -83,14 +107,19 @@ class StopRule:
         """The certificate of the final state (``stop.certificate.Certifier.final``). A run
         stopped by a signal or its wall time is about to be ended by its scheduler: no
         multiplier fit (seconds to minutes at large N), the run's own multipliers."""
-        return self.certifier.final(solver, solver.state.iteration, final_fig, reason == "certified",
-                                    fit=reason not in ("signal", "walltime"))
+        fit = reason not in ("signal", "walltime")
+        try:
+            return self.certifier.final(solver, solver.state.iteration, final_fig, reason == "certified", fit=fit)
+        except Interrupted:  # a signal during the final fit: the run's own multipliers
+            return self.certifier.final(solver, solver.state.iteration, final_fig, reason == "certified", fit=False)
 
     def save(self):
         """The rule's state for a checkpoint (JSON-able; keys of the checkpoint's ``extra``)."""
         out = {"certifier": self.certifier.save()}
         if self.watchdog is not None:
             out["watchdog"] = self.watchdog.save()
+        if self.pending is not None:
+            out["pending_check"] = {k: (v.item() if hasattr(v, "item") else v) for k, v in self.pending.items()}
         return out
 
 
