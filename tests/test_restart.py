@@ -129,6 +129,29 @@ def test_sigusr1_checkpoints_every_rank_and_exits_5(tmp_path, P):
     assert_bitwise_equal(d3, d2, "signal checkpoint + restart vs straight")
 
 
+@pytest.mark.parametrize("P,sig", [(1, signal.SIGTERM), (2, signal.SIGTERM), (3, signal.SIGINT), (2, signal.SIGINT)])
+def test_sigterm_or_sigint_to_mpirun_checkpoints_and_writes_the_summary(tmp_path, P, sig):
+    """What a scheduler or Ctrl-C does: the signal goes to mpirun, which forwards it to the ranks
+    after odls_base_sigkill_timeout seconds (5, tools/env.sh) and kills them as long after. Every
+    rank stops at the same iteration with a checkpoint and a summary (exit 5) within that time;
+    mpirun itself reports 1 for a job it ended."""
+    out = tmp_path / "out"
+    proc = long_run(P, out, ["output.checkpoint_every=200"])
+    deadline = time.time() + 120
+    while not (out / "checkpoint.h5").exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.2)
+    time.sleep(1)
+    t0 = time.time()
+    proc.send_signal(sig)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode in (1, 5), (proc.returncode, stdout, stderr)
+    s = json.loads((out / "summary.json").read_text())
+    assert s["exit_code"] == 5 and s["stop_reason"] == "signal", s
+    assert s["checkpoint"]["iteration"] == s["iterations"] > 200
+    assert (out / "summary.json").stat().st_mtime - t0 < 10  # within the grace period
+    assert "Traceback" not in stderr
+
+
 def test_walltime_checkpoints_before_the_limit(tmp_path):
     t0 = time.time()
     p, s, _ = run_cli(2, tmp_path, ["n=500", "stop.max_iter=100000000"] + FIXED,

@@ -10,7 +10,10 @@ export OMPI_MCA_rmaps_base_oversubscribe=${OMPI_MCA_rmaps_base_oversubscribe:-1}
 # more ranks than cores (an empty rank, a 2-core laptop): give the core away while waiting in
 # MPI instead of busy-polling (N = 3 on 2 ranks: 35.7 s of loop without it, 10.6 s with it)
 export OMPI_MCA_mpi_yield_when_idle=${OMPI_MCA_mpi_yield_when_idle:-1}
-# a clean error exit (mpipack prints one line and every rank exits with the same code) is not
-# followed by Open MPI's ten-line "job has been aborted" notice; the exit code is kept
-export OMPI_MCA_orte_execute_quiet=${OMPI_MCA_orte_execute_quiet:-1}
+# SIGTERM or SIGINT to mpirun (a scheduler, timeout, Ctrl-C): mpirun forwards it to the ranks
+# after this many seconds and kills them as many seconds later. Open MPI's default, 1 s, is too
+# short for a large run to checkpoint (2D N = 1e6 on 2 ranks: 0.93 s from the signal to its
+# summary, docs/benchmarks.md); 5 s leaves room. Open MPI's notices (a rank killed by a signal,
+# by the OOM killer) are not hidden.
+export OMPI_MCA_odls_base_sigkill_timeout=${OMPI_MCA_odls_base_sigkill_timeout:-5}
 unset _mp_top

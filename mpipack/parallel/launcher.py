@@ -36,7 +36,8 @@ def mpi_env():
     env["OMPI_ALLOW_RUN_AS_ROOT_CONFIRM"] = "1"
     env["OMPI_MCA_rmaps_base_oversubscribe"] = "1"
     env.setdefault("OMPI_MCA_mpi_yield_when_idle", "1")
-    env.setdefault("OMPI_MCA_orte_execute_quiet", "1")
+    env.setdefault("OMPI_MCA_orte_execute_quiet", "1")  # mpipack reads the outcome from summary.json
+    env.setdefault("OMPI_MCA_odls_base_sigkill_timeout", "5")  # as tools/env.sh: time to checkpoint
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     env.pop("PYTHONSTARTUP", None)
