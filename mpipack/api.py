@@ -55,7 +55,7 @@ def load_scene(scene=None, overrides=(), seed=None, **settings):
 
 
 def run(scene=None, *, comm=None, out=None, seed=None, overrides=(), options=None, restart=None,
-        dump=None, quiet=True, profile=False, hooks=(), gather=False, **settings):
+        overwrite=False, dump=None, quiet=True, profile=False, hooks=(), gather=False, **settings):
     """Run a scene to its stop rule, as ``mpipack run`` does; returns a ``Result``.
 
     scene: a ``Scene`` (``load_scene``), a built-in name, a TOML path, or None (the default);
@@ -63,7 +63,8 @@ def run(scene=None, *, comm=None, out=None, seed=None, overrides=(), options=Non
     under mpirun; every rank calls ``run``); out: the run folder (None: no file is written, not
     even summary.json); overrides: "key=value" strings; options: {"stop.max_iter": 100}; keyword
     settings with a double underscore for the dot (``stop__max_iter=100``); restart: a run
-    folder or checkpoint to continue; hooks: extra ``engine.hooks.Hook``s; gather: the final
+    folder or checkpoint to continue (in place unless ``out``); overwrite: replace the run that
+    ``out`` holds (else a folder holding another run is refused, exit 2); hooks: extra ``engine.hooks.Hook``s; gather: the final
     particles on rank 0 in ``Result.particles``.
     """
     from mpipack.engine import runner
@@ -73,6 +74,7 @@ def run(scene=None, *, comm=None, out=None, seed=None, overrides=(), options=Non
     values = {**(options or {}), **_dotted(settings)}
     request = runner.RunRequest(scene=scene, overrides=tuple(overrides), settings=values, seed=seed,
                                 out=out, dump=dump, quiet=quiet, profile=profile, restart=restart,
+                                overwrite=overwrite,
                                 files=out is not None or restart is not None, hooks=tuple(hooks))
     comm = Comm(comm)
     outcome = runner.run_request(comm, request)

@@ -63,6 +63,9 @@ def _parser():
                    help="continue from a checkpoint (a checkpoint.h5 or a run folder), on any number of ranks")
     r.add_argument("--walltime", default=None, metavar="HH:MM:SS",
                    help="the job's wall-time limit: checkpoint and exit (code 5) before it")
+    r.add_argument("--overwrite", action="store_true",
+                   help="replace the run that --out holds (without it, a folder holding another run is refused; "
+                        "the default folder is numbered instead)")
     v = sub.add_parser("vtk", help="convert a run's snapshots to VTK (.vtu per snapshot + .pvd) for ParaView")
     v.add_argument("run_dir", help="a run folder (holding snapshots.h5)")
     b = sub.add_parser("bench", help="throughput and memory benchmark in a packed state")
@@ -151,7 +154,7 @@ def main(argv=None):
     from mpipack.engine import runner
     request = runner.RunRequest(scene=args.scene, overrides=tuple(args.overrides), seed=args.seed,
                                 out=args.out, dump=args.dump, quiet=args.quiet, profile=args.profile,
-                                restart=args.restart, walltime=args.walltime)
+                                restart=args.restart, walltime=args.walltime, overwrite=args.overwrite)
     return runner.execute(comm, request)
 
 

@@ -30,7 +30,9 @@ class RunRequest:
 
     scene: a built-in name, a TOML path, or None (the default scene); overrides: "key=value"
     strings (``--set``); settings: {dotted key: value} (the library's keyword overrides);
-    out: the run folder (None: the scene's output.dir, else mpipack-out/<scene>);
+    out: the run folder (None: the scene's output.dir, else mpipack-out/<scene>, numbered when it
+    holds a run; with restart alone, the restarted run's folder); overwrite: replace the run an
+    explicit folder holds (``choose_run_folder``);
     files: False writes no file at all (no folder, summary, snapshot or checkpoint).
     """
     scene: object = None
@@ -43,6 +45,7 @@ class RunRequest:
     profile: bool = False
     restart: str = None
     walltime: str = None
+    overwrite: bool = False
     files: bool = True
     hooks: tuple = ()
 
@@ -102,6 +105,60 @@ def resolve_scene(comm, args):
                          f"{', '.join(k + ('.*' if k != 'name' else '') for k in config.RESTART_MAY_CHANGE)} "
                          f"may change on a restart")
     return scene, state
+
+
+# what makes a folder a run's (``engine.output``, ``mpipack vtk``)
+RUN_FILES = ("summary.json", "checkpoint.h5", "snapshots.h5", "snapshots.xmf", "metrics.csv",
+             "snapshots.pvd", "vtk")
+
+
+def run_files(folder):
+    """The run files a folder holds (none when it does not exist)."""
+    return [f for f in RUN_FILES if os.path.lexists(os.path.join(folder, f))]
+
+
+def choose_run_folder(args, scene):
+    """(folder, one-line error or None, a note for the user or None): where this run writes.
+
+    A run never writes into a folder that holds another run. ``--restart`` alone continues its
+    run in place; an explicit folder (``--out``, or the scene's output.dir) that holds another
+    run is refused unless ``--overwrite`` (which removes the old run's files first); the default
+    folder, mpipack-out/<scene>, is numbered instead (mpipack-out/<scene>-2, -3, ...)."""
+    overwrite = getattr(args, "overwrite", False)
+    restart_dir = None
+    if args.restart:
+        restart_dir = args.restart if os.path.isdir(args.restart) else os.path.dirname(os.path.abspath(args.restart))
+    explicit = args.out or scene.output.dir
+    if explicit is None and restart_dir is not None:
+        if overwrite:
+            return None, "--overwrite would remove the checkpoint that --restart continues; give --out", None
+        return restart_dir, None, None  # the one way to continue a run in place
+    if explicit is None:
+        base = os.path.join("mpipack-out", scene.name)
+        folder, k = base, 1
+        while run_files(folder):
+            k += 1
+            folder = f"{base}-{k}"
+        note = f"{base} holds an earlier run: this one writes to {folder}" if k > 1 else None
+        return folder, None, note
+    held = run_files(explicit)
+    if restart_dir is not None and os.path.realpath(explicit) == os.path.realpath(restart_dir):
+        if overwrite:
+            return None, "--overwrite would remove the checkpoint that --restart continues", None
+        return explicit, None, None
+    if held and not overwrite:
+        return None, (f"--out {explicit} holds another run ({', '.join(held)}): continue it with "
+                      f"--restart {explicit}, replace it with --overwrite, or choose another --out"), None
+    if held:
+        import shutil
+        try:
+            for f in held:
+                path = os.path.join(explicit, f)
+                shutil.rmtree(path) if os.path.isdir(path) and not os.path.islink(path) else os.remove(path)
+        except OSError as e:
+            return None, f"--overwrite: cannot remove {path}: {e.strerror}", None
+        return explicit, None, f"--overwrite: removed the earlier run's {', '.join(held)} from {explicit}"
+    return explicit, None, None
 
 
 def prepare_outputs(out, dump):
@@ -236,15 +293,15 @@ def run_request(comm, args):
     files = getattr(args, "files", True)
     out = None
     if files:
-        out = args.out or scene.output.dir
-        if out is None:
-            restart_dir = args.restart if args.restart and os.path.isdir(args.restart) else \
-                (os.path.dirname(os.path.abspath(args.restart)) if args.restart else None)
-            out = restart_dir or os.path.join("mpipack-out", scene.name)
-        err = prepare_outputs(out, args.dump) if rank0 else None
-        err = comm.bcast_object(err)
+        # rank 0 looks at the file system and decides; every rank takes its word
+        out, err, note = choose_run_folder(args, scene) if rank0 else (None, None, None)
+        if err is None and rank0:
+            err = prepare_outputs(out, args.dump)
+        out, err, note = comm.bcast_object((out, err, note))
         if err:
             return Outcome(fail(comm, EXIT_INPUT, err), err)
+        if note and rank0 and not args.quiet:
+            print(f"mpipack: {note}", flush=True)
     previous = install_handlers()
     try:
         return _execute(comm, args, scene, state, out, walltime)

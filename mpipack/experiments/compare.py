@@ -187,7 +187,8 @@ def run_one(scene_src, base_sets, p, eps, seed, out, max_iter, metrics_every=0):
     sets = list(base_sets) + method_sets(p, eps) + [
         'stop.rule="eps"', f"stop.eps={eps!r}", f"stop.max_iter={max_iter}", "output.progress_every=0",
         "output.snapshots=false", f"output.metrics_every={metrics_every}"]
-    request = runner.RunRequest(scene=scene_src or None, overrides=tuple(sets), seed=seed, out=out, quiet=True)
+    request = runner.RunRequest(scene=scene_src or None, overrides=tuple(sets), seed=seed, out=out, quiet=True,
+                                overwrite=True)  # compare's own run folders: a warm-up's or an earlier compare's
     err = sys.stderr
     sys.stderr = open(os.devnull, "w")  # a run that fails says so in its summary
     try:

@@ -117,7 +117,7 @@ def one_point_checkpoint(folder, n, dim, form, log):
     proc = run_cli(1, ["run", "--set", f"n={n}", "--set", f"dim={dim}", "--set", f"method.form=\"{form}\"",
                        "--set", "method.alpha=0.04", "--set", "method.beta=0.15", "--set", "stop.max_iter=1",
                        "--set", "stop.eps=0", "--set", "output.checkpoint_every=1", "--set", "output.snapshots=false",
-                       "--quiet", "--out", seed_dir], folder, 120)
+                       "--quiet", "--out", seed_dir, "--overwrite"], folder, 120)
     log.append(proc)
     path = os.path.join(seed_dir, "checkpoint.h5")
     if proc.returncode != 0 or not os.path.exists(path):
@@ -161,7 +161,8 @@ def run_case(case, out_dir):
         for s in sets:
             args += ["--set", s]
         dump = os.path.join(folder, "final.npz")
-        args += ["--out", run_dir, "--quiet"] + (["--dump", dump] if case.dump else []) + case.extra
+        # the case's own scratch folder: its warm-up's (or an earlier suite's) run is replaced
+        args += ["--out", run_dir, "--overwrite", "--quiet"] + (["--dump", dump] if case.dump else []) + case.extra
         if os.path.exists(dump):
             os.remove(dump)
         if case.warmup:  # the same command for one iteration first: kernels compiled and cached

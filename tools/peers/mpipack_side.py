@@ -119,6 +119,8 @@ def run_mpipack(start_meta, ranks, out_dir, dump, sets=(), timeout=None, restart
     for s in scene_sets(start_meta["n"], start_meta["dim"], start_meta["sigma"]) + list(sets):
         argv += ["--set", s]
     argv += ["--seed", str(start_meta["seed"]), "--out", out_dir, "--quiet"]
+    if restart is None or os.path.realpath(restart) != os.path.realpath(out_dir):
+        argv += ["--overwrite"]  # this harness's own folders
     if dump:
         argv += ["--dump", dump]
     t0 = time.perf_counter()
