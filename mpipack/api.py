@@ -74,7 +74,7 @@ def run(scene=None, *, comm=None, out=None, seed=None, overrides=(), options=Non
     values = {**(options or {}), **_dotted(settings)}
     request = runner.RunRequest(scene=scene, overrides=tuple(overrides), settings=values, seed=seed,
                                 out=out, dump=dump, quiet=quiet, profile=profile, restart=restart,
-                                overwrite=overwrite,
+                                overwrite=overwrite, silent=quiet,
                                 files=out is not None or restart is not None, hooks=tuple(hooks))
     comm = Comm(comm)
     outcome = runner.run_request(comm, request)

@@ -75,6 +75,13 @@ def builtin_names():
     return sorted(p.stem for p in resources.files("mpipack.scenes").iterdir() if p.name.endswith(".toml"))
 
 
+# a scene file is a few hundred bytes: anything much larger is not one
+MAX_SCENE_BYTES = 1024 * 1024
+# the Verlet skin, in largest diameters: the rows hold every pair within d + skin, and their
+# cost grows like (1 + skin)^b (neighbor.skin = 1e6 was accepted and 20x slower)
+MAX_SKIN = 2.0
+
+
 def _read(source):
     """Parse a scene from a path or a built-in name."""
     if not source.strip():
@@ -85,6 +92,15 @@ def _read(source):
             raise SceneError(f"scene file not found: {source}")
         if path.is_dir():
             raise SceneError(f"scene {source} is a folder, not a TOML file")
+        if not path.is_file():  # a device, a pipe: read without end
+            raise SceneError(f"scene {source} is not a regular file")
+        try:
+            size = path.stat().st_size
+        except OSError as e:
+            raise SceneError(f"scene {source}: cannot read it: {e.strerror}") from None
+        if size > MAX_SCENE_BYTES:
+            raise SceneError(f"scene {source} has {size} bytes, more than a scene "
+                             f"(at most {MAX_SCENE_BYTES // 1024} KiB)")
         try:
             text = path.read_text(encoding="utf-8")
         except UnicodeDecodeError:
@@ -102,6 +118,9 @@ def _read(source):
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise SceneError(f"scene {source}: invalid TOML: {e}") from None
+    if not data:
+        raise SceneError(f"scene {source} sets no key (an empty file?); give at least one key, "
+                         f"or run the default scene by name: mpipack run default")
     data.setdefault("name", default_name)
     return data
 
@@ -386,7 +405,12 @@ def validate(scene):
     _num(scene, "stop.check_every", int)
     if not isinstance(scene["stop"]["watchdog"], bool):
         raise SceneError(f"key 'stop.watchdog' must be true or false, got {scene['stop']['watchdog']!r}")
-    _num(scene, "neighbor.skin")
+    if _num(scene, "neighbor.skin") > MAX_SKIN:
+        raise SceneError(f"key 'neighbor.skin' is in largest diameters, at most {MAX_SKIN:g} "
+                         f"(the pair rows grow like (1 + skin)^dim), got {scene['neighbor']['skin']!r}")
+    if _num(scene, "stop.overlap") > 1:
+        raise SceneError(f"key 'stop.overlap' is relative to the contact distance, at most 1, "
+                         f"got {scene['stop']['overlap']!r}")
     _num(scene, "neighbor.max_pair_gib", optional=True)
     reb = _num(scene, "neighbor.rebalance")
     if reb < 1:

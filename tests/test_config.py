@@ -103,6 +103,8 @@ BAD = [
     ("stop.max_iter=-1", "stop.max_iter"),
     ('stop.max_iter="many"', "stop.max_iter"),
     ("neighbor.skin=0", "neighbor.skin"),
+    ("neighbor.skin=1e6", "neighbor.skin"),
+    ("stop.overlap=2", "stop.overlap"),
     ("neighbor.rebalance=0.9", "neighbor.rebalance"),
     ("seed=-1", "seed"),
     ("name=", "name"),
@@ -133,6 +135,17 @@ def test_bad_scene_source(tmp_path):
     g.write_text("[particles]\ndiameter = 1.0\nradius = 0.5\n")
     with pytest.raises(config.SceneError, match="particles.radius"):
         config.load(str(g))
+    # damaged or wrong input, refused in one line before anything is read without bound
+    with pytest.raises(config.SceneError, match="not a regular file"):
+        config.load("/dev/zero")
+    e = tmp_path / "empty.toml"
+    e.write_text("# nothing yet\n")
+    with pytest.raises(config.SceneError, match="sets no key"):
+        config.load(str(e))
+    big = tmp_path / "big.toml"
+    big.write_text("# " + "x" * (config.MAX_SCENE_BYTES + 10) + "\n")
+    with pytest.raises(config.SceneError, match="more than a scene"):
+        config.load(str(big))
 
 
 def test_iteration_bound_grows_with_n(tmp_path):

@@ -19,8 +19,8 @@ from mpipack.parallel.state import BlockState
 def solver_at(x, diam, form="S"):
     """A one-rank solver holding positions x (n, b) with lambda = 0 and every pair in its rows."""
     n, dim = x.shape
-    scene = config.load("default", [f"n={n}", f"dim={dim}", f"method.form={form}",
-                                    "method.alpha=0.01", "neighbor.skin=100"])
+    scene = config.load("default", [f"n={n}", f"dim={dim}", f"method.form={form}", "method.alpha=0.01"])
+    scene = scene.replace(neighbor={"skin": 100.0})  # every pair in the rows (beyond a scene's bound)
     s = solver.Solver(scene, Comm())
     empty = np.zeros(0)
     s.initialise(BlockState(n_global=n, dim=dim, gid_lo=0, x=x.copy(), x_prev=x.copy(),

@@ -323,7 +323,8 @@ def test_outer_loop_matches_reference(comm, case):
         f"dim={dim}", f"n={n}", "seed=3", "init.sigma=0.8", "particles.diameter_max=1.2",
         f"method.name={method}", f"method.form={form}", f"method.alpha={alpha}",
         f"method.beta={beta}", f"method.tau={tau}", f"method.l_inner={l_inner}",
-        f"method.eps_inner={eps_inner}", "neighbor.skin=100", "stop.eps=0"])
+        f"method.eps_inner={eps_inner}", "stop.eps=0"])
+    scene = scene.replace(neighbor={"skin": 100.0})  # every pair in the rows (beyond a scene's bound)
     s = solver.Solver(scene, comm)
     s.initialise()
     g0 = s.gather()

@@ -46,6 +46,7 @@ class RunRequest:
     restart: str = None
     walltime: str = None
     overwrite: bool = False
+    silent: bool = False
     files: bool = True
     hooks: tuple = ()
 
@@ -405,13 +406,13 @@ def _execute(comm, args, scene, state, out, walltime):
         data = solver.gather()
         if rank0:
             files.append(save_dump(args.dump, out or os.getcwd(), data))
-    summary.update({"exit_code": code, "exit_status": EXIT_MEANING[code], "error": message,
+    summary.update({"exit_code": code, "exit_status": exit_status(scene, res, code), "error": message,
                     "files": sorted(set(f for f in files if f))})
     path = write_summary(out, summary, rank0) if out is not None else None
     if code in (EXIT_NUMERICAL, EXIT_INPUT):
         return Outcome(fail(comm, code, message), message, summary, res, path, solver)
-    if rank0 and not args.quiet:
-        print_result(scene, res, wall, path, code, checkpoints)
+    if rank0 and not getattr(args, "silent", False):  # --quiet keeps the verdict's line
+        print_result(scene, res, wall, path, code, checkpoints, brief=args.quiet)
         if args.profile:
             from mpipack.engine.loop import profile_lines
             print("mpipack: time per phase of the loop", flush=True)
@@ -431,7 +432,7 @@ def save_dump(path, out, data):
 
 
 def result_summary(scene, comm, res, wall, profile):
-    from mpipack.engine.report import density_valid
+    from mpipack.engine.report import reported_density
     out = {
         "iterations": res["iterations"], "converged": res["converged"],
         "stop_reason": res["stop_reason"], "certificate": res["certificate"],
@@ -443,7 +444,8 @@ def result_summary(scene, comm, res, wall, profile):
         # the squared residual (1/N if spread evenly; snapshots hold net_force per sphere)
         "max_net_force": res["max_net_force"], "net_force_share": res["net_force_share"],
         "complementarity": res["complementarity"], "overlap_A": res["overlap_A"],
-        "density": res["density"] if density_valid(scene, res) else None,
+        "density": reported_density(scene, res),  # None: not a packing
+        "density_measured": res["density"],
         "density_radius": res["density_radius"],
         "particle_iterations_per_second": res["particle_iterations_per_second"],
         "particle_iterations_per_second_per_rank": res["particle_iterations_per_second"] / comm.size,
@@ -474,7 +476,18 @@ def exit_code(scene, res):
     return EXIT_NOT_CONVERGED
 
 
-def print_result(scene, res, wall, summary_path, code, checkpoints):
+def exit_status(scene, res, code):
+    """The words of an exit code in summary.json; exit 0 without a certificate (the paper's rule
+    (4.3), or the requested iterations) says so instead of "converged"."""
+    if code == EXIT_OK and res is not None and not res["converged"]:
+        from mpipack.engine.report import verdict
+        return verdict(scene, res).replace("NOT", "not")
+    return EXIT_MEANING[code]
+
+
+def print_result(scene, res, wall, summary_path, code, checkpoints, brief=False):
+    """The result on rank 0: the verdict, the certificate, W, the density, what to do next, the
+    summary's path; ``brief`` (``--quiet``): the verdict's line alone."""
     from mpipack.engine.report import certificate_line, density_line, residual_line, verdict
     lines = [f"mpipack: {verdict(scene, res)} after {res['iterations']} iterations in {wall:.2f} s "
              f"({res['particle_iterations_per_second']:.3g} particle-iterations/s)",
@@ -482,6 +495,9 @@ def print_result(scene, res, wall, summary_path, code, checkpoints):
              f"  relative change {res['relative_change']:.3e}, W = {res['W']:.10g}, force imbalance "
              f"{res['force_imbalance']:.3e} (net force / contact forces)",
              f"  {density_line(scene, res)}"]
+    if brief:
+        print(lines[0], flush=True)
+        return
     if not res["certificate"]["kkt"]["ok"]:
         lines.append(f"  {residual_line(scene, res)}")
     if code == EXIT_CHECKPOINTED:
