@@ -267,3 +267,35 @@ def test_a_signal_during_a_checks_fit_stops_at_once_and_the_restart_makes_the_ch
     again = mpipack.run(restart=out, gather=True)
     assert again.exit_code == 0 and again.iterations == ref.iterations and again.figures["W"] == ref.figures["W"]
     assert_bitwise_equal(ref.particles, again.particles, "signal during a fit, then restart")
+
+
+def damage(path, dataset, how, keep_checksum):
+    """Change one element of a checkpoint's dataset in place (h5py, serial)."""
+    import h5py
+    with h5py.File(path, "r+") as f:
+        d = f[dataset]
+        v = d[...]
+        flat = v.reshape(-1)
+        flat[len(flat) // 2] = how(flat[len(flat) // 2])
+        d[...] = v
+        if not keep_checksum:  # a file from before the checksums: the state's own checks remain
+            del f.attrs["checksums"]
+
+
+@pytest.mark.parametrize("dataset,how,keep,ranks,words", [
+    ("particles/x", lambda v: v + 1e-9, True, 1, "checksum"),           # silent corruption
+    ("history/lambda", lambda v: v * 2.0, True, 2, "checksum"),
+    ("particles/x", lambda v: np.nan, False, 3, "not finite"),
+    ("particles/diam", lambda v: 0.0, False, 2, "not positive"),
+    ("history/lambda", lambda v: -1.0, False, 1, "negative"),
+    ("history/gid", lambda v: 10 ** 9, False, 3, "outside"),
+])
+def test_a_damaged_checkpoint_is_refused_in_one_line(tmp_path, dataset, how, keep, ranks, words):
+    p1, s1, _ = run_cli(1, tmp_path, ["n=200", "stop.max_iter=60", "output.checkpoint_every=60"] + FIXED)
+    assert p1.returncode == 0, describe(p1)
+    ck = tmp_path / "out" / "checkpoint.h5"
+    damage(str(ck), dataset, how, keep)
+    p2, _, _ = run_cli(ranks, tmp_path / "again", ["stop.max_iter=80"], extra=["--restart", ck])
+    assert p2.returncode == 2, describe(p2)
+    errors = [line for line in p2.stderr.splitlines() if "error:" in line]
+    assert len(errors) == 1 and words in errors[0] and "Traceback" not in p2.stderr, describe(p2)

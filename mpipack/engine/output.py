@@ -17,6 +17,8 @@ import json
 import os
 import time
 
+import numpy as np
+
 from mpipack import __version__
 from mpipack.stop import measures
 from mpipack.engine.hooks import Hook
@@ -146,6 +148,36 @@ class NoCheckpoints:
         return 0.0
 
 
+def state_problem(block, scalars, n):
+    """What makes a checkpoint's state impossible (this rank's block), or None: positions that
+    are not finite, diameters that are not positive, partner gids outside [0, N) or a sphere its
+    own partner, multipliers that are negative or not finite, scalars missing or of the wrong
+    kind. A run from such a state would fail far from its cause, or silently compute nonsense."""
+    for k in ("x", "x_prev", "x_lin", "qn"):
+        if block.get(k) is not None and not np.all(np.isfinite(block[k])):
+            return f"particles/{k} holds values that are not finite"
+    d = block["diam"]
+    if not np.all(np.isfinite(d)) or np.any(d <= 0):
+        return "particles/diam holds diameters that are not positive"
+    gid, lam, count = block["hist_gid"], block["hist_lambda"], block["hist_count"]
+    if gid.size and (gid.min() < 0 or gid.max() >= n):
+        return f"history/gid holds partners outside [0, {n})"
+    owner = block["gid_lo"] + np.repeat(np.arange(count.size), count)
+    if np.any(gid == owner):
+        return "history/gid holds a sphere as its own partner"
+    if lam.size and (not np.all(np.isfinite(lam)) or lam.min() < 0):
+        return "history/lambda holds multipliers that are negative or not finite"
+    try:
+        iteration = scalars["iteration"]
+        ok = (isinstance(iteration, int) and iteration >= 0 and isinstance(scalars["lambda_fresh"], bool)
+              and isinstance(scalars.get("counters", {}), dict) and isinstance(scalars.get("extra", {}), dict))
+    except (KeyError, TypeError):
+        ok = False
+    if not ok:
+        return "its scalars (iteration, lambda_fresh, counters) are missing or of the wrong kind"
+    return None
+
+
 def read_state(comm, path):
     """(BlockState of this rank, scene table, file attributes) from a checkpoint file or a run
     folder holding checkpoint.h5. Raises io.checkpoint.CheckpointError (one line)."""
@@ -162,6 +194,9 @@ def read_state(comm, path):
             scene = None
     if not isinstance(scene, dict):
         raise CheckpointError(f"checkpoint {path}: no scene recorded in it")
+    problem = state_problem(block, scalars, int(attrs["n"]))
+    if problem:
+        raise CheckpointError(f"{path}: damaged checkpoint: {problem}")
     state = BlockState(
         n_global=int(attrs["n"]), dim=int(attrs["dim"]), gid_lo=int(block["gid_lo"]),
         x=block["x"], x_prev=block["x_prev"], diam=block["diam"],

@@ -51,6 +51,34 @@ def one_line(text):
     return " ".join(str(text).split())
 
 
+_MASK64 = (1 << 64) - 1
+_WEIGHT = np.uint64(0x9E3779B97F4A7C15)
+
+
+def checksum_rows(rows, first_row):
+    """This rank's share of a dataset's checksum, rows ``first_row ..`` of it: the sum of every
+    element's 64 bits times an odd weight of its position in the whole dataset, mod 2^64. A sum
+    over the ranks' shares (``checksum_total``) is the same whatever rows each rank holds, so a
+    file written on P ranks is checked on any number; a changed, swapped or overwritten element
+    changes it (unless another change cancels it exactly)."""
+    a = np.ascontiguousarray(rows)
+    width = int(np.prod(a.shape[1:])) if a.ndim > 1 else 1
+    bits = a.reshape(-1).view(np.uint64) if a.dtype.itemsize == 8 else \
+        a.reshape(-1).astype(np.int64).view(np.uint64)
+    index = np.arange(first_row * width, first_row * width + bits.size, dtype=np.uint64)
+    with np.errstate(over="ignore"):
+        weight = index * _WEIGHT + np.uint64(1)
+        return int(np.sum(bits * weight, dtype=np.uint64))
+
+
+def checksum_total(comm, shares):
+    """{name: checksum} summed over the ranks' shares ({name: share}), mod 2^64 (collective)."""
+    names = sorted(shares)
+    local = [int(shares[k]) for k in names]
+    totals = local if comm.size == 1 else [sum(v) for v in zip(*comm.mpi.allgather(local))]
+    return {k: t & _MASK64 for k, t in zip(names, totals)}
+
+
 def bcast(comm, obj):
     return obj if comm.size == 1 else comm.mpi.bcast(obj, root=0)
 

@@ -177,8 +177,13 @@ def write_checkpoint(comm, path, n_global, dim, block, scalars, attrs, *, parall
     scalars_json = _h5.bcast(comm, _h5.to_json(scalars) if comm.rank == 0 else None)
     file_attrs.setdefault("ranks", comm.size)
     file_attrs.setdefault("version", _package_version())
+    # checksums of every dataset, whatever the partition (``_h5.checksum_rows``), checked on read
+    shares = {f"particles/{k}": _h5.checksum_rows(v, gid_lo) for k, v in parts.items()}
+    shares.update({f"history/{k}": _h5.checksum_rows(v, k_off) for k, v in hist.items()})
+    shares["history/offset"] = _h5.checksum_rows(offsets, gid_lo)
+    checksums = _h5.checksum_total(comm, shares)
     file_attrs.update(format=FORMAT, format_version=FORMAT_VERSION, n=n_global, dim=dim,
-                      scalars=scalars_json)
+                      scalars=scalars_json, checksums=json.dumps({k: str(v) for k, v in checksums.items()}))
     layout = {"particles": {k: ((n_global,) + v.shape[1:], v.dtype) for k, v in parts.items()},
               "history": {k: ((k_total,) + v.shape[1:], v.dtype) for k, v in hist.items()}}
     layout["history"]["offset"] = ((n_global + 1,), np.dtype(np.int64))
@@ -395,4 +400,18 @@ def read_checkpoint(comm, path, *, parallel=None):
     err = _h5.first_error(comm, err)
     if err is not None:
         raise CheckpointError(err)
+    stored = head["attrs"].get("checksums")
+    if stored is not None:  # files of before the checksums have none
+        shares = {f"particles/{k}": _h5.checksum_rows(block[k], lo) for k in head["parts"]}
+        shares.update({f"history/{k}": _h5.checksum_rows(block["hist_" + k], k_lo) for k in head["hist"]})
+        last = comm.rank == comm.size - 1  # the offsets' final row is the last rank's
+        shares["history/offset"] = _h5.checksum_rows(off if last else off[:-1], lo)
+        got = _h5.checksum_total(comm, shares)
+        try:
+            want = {k: int(v) for k, v in (json.loads(stored) if isinstance(stored, str) else stored).items()}
+        except (ValueError, TypeError, AttributeError):
+            want = None
+        bad = sorted(k for k in got if want is None or want.get(k) != got[k])
+        if bad:
+            raise CheckpointError(f"{path}: damaged checkpoint: {', '.join(bad[:3])} do not match their checksum")
     return block, head["scalars"], head["attrs"]
