@@ -29,7 +29,7 @@ SCHEDULES = ("fixed", "fire-al")
 # (2.10) exactly)
 FIXED_FALLBACK = {"alpha": 7.8e-3, "beta": 2.8e3, "c": 2.0}
 PAPER_GAMMA = 1.6e-2  # with the fallback alpha and beta
-# stop.max_iter "auto": MAX_ITER_BASE up to N = MAX_ITER_N, then x (N / MAX_ITER_N)^p with
+# stop.max_iter "auto": MAX_ITER_BASE up to N = MAX_ITER_N[b], then x (N / MAX_ITER_N[b])^p with
 # p = MAX_ITER_GROWTH[b]. The bound is a safeguard, not a criterion: about twice the slowest
 # certified run seen at the largest sizes measured. In 3D p = 1/3, the growth of the
 # iterations per unit of the trap's time at a step bounded by the stiffest contact (3D N = 1e5
@@ -37,9 +37,12 @@ PAPER_GAMMA = 1.6e-2  # with the fallback alpha and beta
 # the larger the packing, and the slowest certified runs grew faster than N^(1/2): 7150
 # iterations at N = 8000, 100500 at 32000, 556950 at 1e5 (seed 1, 2 ranks), which N^(1/2)'s
 # 354000 cut short (docs/research/convergence.md, sections 3i, 3r and 3t): p = 1 there (400000 at
-# 32000, 1250000 at 1e5). 1D keeps 1/b = 1.
-MAX_ITER_BASE, MAX_ITER_N = 100000, 8000
-MAX_ITER_GROWTH = {1: 1.0, 2: 1.0, 3: 1.0 / 3.0}
+# 32000, 1250000 at 1e5). A 1D chain settles diffusively, about N^2 / 9 iterations (seeds 0
+# and 1: 26900 and 39600 at N = 500, 77900 and 81950 at 1000, and seed 1 452500 at 2000,
+# which the old bound of 100000 cut short): p = 2 from N = 633 (998000 at N = 2000).
+MAX_ITER_BASE = 100000
+MAX_ITER_N = {1: 633, 2: 8000, 3: 8000}
+MAX_ITER_GROWTH = {1: 2.0, 2: 1.0, 3: 1.0 / 3.0}
 MAX_ITER_LIMIT = 10 ** 12  # the largest stop.max_iter a scene may give
 
 
@@ -47,7 +50,7 @@ def auto_max_iter(n, dim):
     """The default iteration bound of a scene of n spheres in dim dimensions (see above), at
     most MAX_ITER_LIMIT (so that an absurd n is refused for its own sake, not for a bound the
     user never gave)."""
-    grow = max(1.0, n / MAX_ITER_N) ** MAX_ITER_GROWTH[dim]
+    grow = max(1.0, n / MAX_ITER_N[dim]) ** MAX_ITER_GROWTH[dim]
     return min(int(round(MAX_ITER_BASE * grow, -3)), MAX_ITER_LIMIT)
 
 DEFAULTS = {

@@ -158,6 +158,9 @@ def test_iteration_bound_grows_with_n(tmp_path):
     assert bound == {(2, 2): 100000, (8000, 2): 100000, (32000, 2): 400000, (100000, 2): 1250000,
                      (100000, 3): 232000, (1000000, 2): 12500000}
     assert bound[(100000, 2)] > 2 * 556950  # the one certified 2D N = 1e5 run, twice over
+    # 1D: like N^2 (a chain settles diffusively): 1D N = 2000 seed 1 certifies at 452500
+    assert config.load("default", ["n=2000", "dim=1"]).stop.max_iter > 2 * 452500
+    assert config.load("default", ["n=500", "dim=1"]).stop.max_iter == 100000
     # never above what a scene may give (an absurd n is refused for its memory, not its bound)
     assert config.auto_max_iter(10 ** 12, 2) == config.MAX_ITER_LIMIT
     assert config.load("default", ["n=100000", "stop.max_iter=5"]).stop.max_iter == 5
