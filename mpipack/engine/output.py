@@ -21,7 +21,15 @@ import numpy as np
 
 from mpipack import __version__
 from mpipack.stop import measures
-from mpipack.engine.hooks import Hook
+from mpipack.engine.hooks import STOP, Hook
+
+
+def _write_errors():
+    """The errors of a file that could not be written (a full disk, a vanished folder): the
+    writers agree on them on every rank before any rank leaves a collective call."""
+    from mpipack.io.checkpoint import CheckpointError
+    from mpipack.io.snapshots import SnapshotError
+    return (SnapshotError, CheckpointError, OSError)
 
 SNAPSHOT_FILE = "snapshots.h5"
 CHECKPOINT_FILE = "checkpoint.h5"
@@ -53,13 +61,24 @@ class Snapshots:
         self.writer = None
         self.last_iteration = None
         self.seconds = 0.0
+        self.failed = None  # the one-line message of a snapshot that could not be written
 
     def hooks(self):
         return [Hook(self._due, every=self.every if self.every > 0 else None, at_end=True,
                      name="snapshot")]
 
     def _due(self, ctx):
-        self.write(ctx.solver, ctx.iteration, ctx.elapsed, ctx.figures)
+        """A snapshot on schedule; one that cannot be written stops the run (collectively)."""
+        return None if self.safe_write(ctx.solver, ctx.iteration, ctx.elapsed, ctx.figures) else STOP
+
+    def safe_write(self, solver, iteration, elapsed, figures):
+        """``write``, a failure kept in ``failed`` instead of raised; True when written."""
+        try:
+            self.write(solver, iteration, elapsed, figures)
+            return True
+        except _write_errors() as e:
+            self.failed = str(e).splitlines()[0] if str(e) else repr(e)
+            return False
 
     def write(self, solver, iteration, elapsed, figures):
         if self.last_iteration == iteration:
@@ -92,12 +111,24 @@ class Checkpoints:
         self.path = os.path.join(out_dir, CHECKPOINT_FILE)
         self.last_iteration = None
         self.last_seconds = None  # wall seconds of the last write (for the wall-time margin)
+        self.failed = None  # the one-line message of a checkpoint that could not be written
 
     def hooks(self):
         out = [Hook(self._at_stop, at_stop=True, name="checkpoint-at-stop")]
         if self.every > 0:
-            out.append(Hook(lambda ctx: self.write(ctx.solver), every=self.every, name="checkpoint"))
+            out.append(Hook(lambda ctx: None if self.safe_write(ctx.solver) else STOP, every=self.every,
+                            name="checkpoint"))
         return out
+
+    def safe_write(self, solver):
+        """``write``, a failure kept in ``failed`` (the previous checkpoint stays whole) instead
+        of raised; True when written."""
+        try:
+            self.write(solver)
+            return True
+        except _write_errors() as e:
+            self.failed = str(e).splitlines()[0] if str(e) else repr(e)
+            return False
 
     def keeps(self, reason):
         """A stop whose state a later run continues: a signal or the wall time (exit 5), a bound
@@ -112,7 +143,7 @@ class Checkpoints:
         left it (the final figures update the multipliers), and within a scheduler's grace
         period (nothing costly comes first)."""
         if self.keeps(ctx.stop_reason):
-            self.write(ctx.solver)
+            self.safe_write(ctx.solver)
 
     def write(self, solver):
         """Collective. Returns the seconds the write took."""
@@ -140,12 +171,16 @@ class NoCheckpoints:
     path = None
     last_iteration = None
     last_seconds = None
+    failed = None
 
     def hooks(self):
         return []
 
     def write(self, solver):
         return 0.0
+
+    def safe_write(self, solver):
+        return True
 
 
 def state_problem(block, scalars, n):

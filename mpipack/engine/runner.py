@@ -381,10 +381,9 @@ def _execute(comm, args, scene, state, out, walltime):
     files = []
     if solver is not None and code == EXIT_NUMERICAL:
         # the last good state: for ParaView and for a look at what went wrong
-        checkpoints.write(solver)
-        files.append(checkpoints.path)
+        checkpoints.safe_write(solver)
         if snapshots is not None:
-            snapshots.write(solver, solver.state.iteration, wall, {})
+            snapshots.safe_write(solver, solver.state.iteration, wall, {})
     if res is not None:
         # the checkpoint of a signal, the wall time or a bound was written when the loop
         # stopped (``output.Checkpoints.keeps``), before the final figures
@@ -393,6 +392,12 @@ def _execute(comm, args, scene, state, out, walltime):
         elif code is None:
             code = exit_code(scene, res)
         summary.update(result_summary(scene, comm, res, wall, args.profile))
+    failed = (snapshots.failed if snapshots is not None else None) or checkpoints.failed
+    if failed is not None and code != EXIT_NUMERICAL:
+        # a file could not be written (a full disk, a vanished folder): every rank knows it (the
+        # writers agree), the run stopped, the previous checkpoint is whole
+        code, message = EXIT_INPUT, f"output not written: {failed}"
+        summary["output_failed"] = failed
     if checkpoints.last_iteration is not None:
         files.append(checkpoints.path)
         summary["checkpoint"] = {"path": checkpoints.path, "iteration": checkpoints.last_iteration,

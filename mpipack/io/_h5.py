@@ -79,6 +79,27 @@ def checksum_total(comm, shares):
     return {k: t & _MASK64 for k, t in zip(names, totals)}
 
 
+def space_problem(comm, path, need_bytes):
+    """A one-line message on every rank when the file system of ``path`` has less room than a
+    write of ``need_bytes`` needs (with a tenth and 1 MiB to spare), else None. Rank 0 looks and
+    decides before any collective HDF5 call: a rank that ran out of room inside one (ENOSPC in
+    H5Dwrite) would leave the others waiting in it forever."""
+    msg = None
+    if comm.rank == 0:
+        folder = os.path.dirname(os.path.abspath(path))
+        try:
+            st = os.statvfs(folder)
+            free = st.f_bavail * st.f_frsize
+        except OSError as e:
+            msg = f"{folder}: {e.strerror or e}"
+        else:
+            want = int(1.1 * need_bytes) + 2 ** 20
+            if free < want:
+                msg = (f"no room on the file system of {folder}: about {want / 2**20:.1f} MiB "
+                       f"needed, {free / 2**20:.1f} MiB free")
+    return bcast(comm, msg)
+
+
 def bcast(comm, obj):
     return obj if comm.size == 1 else comm.mpi.bcast(obj, root=0)
 

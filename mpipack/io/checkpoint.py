@@ -192,6 +192,11 @@ def write_checkpoint(comm, path, n_global, dim, block, scalars, attrs, *, parall
     rows[("history", "offset")] = (gid_lo, offsets)
 
     tmp = _temp_path(path)
+    need = sum(int(np.prod(shape, dtype=np.int64)) * np.dtype(dt).itemsize
+               for group in layout.values() for shape, dt in group.values())
+    err = _h5.space_problem(comm, path, need)  # the previous checkpoint stays until the rename
+    if err is not None:
+        raise CheckpointError(f"{path}: checkpoint not written: {err}")
     err = None
     try:
         if parallel:

@@ -240,6 +240,11 @@ class SnapshotWriter:
         if "iteration" not in attrs:
             raise ValueError("snapshot attrs must hold 'iteration'")
         attrs["iteration"] = int(attrs["iteration"])
+        need = sum(self.n_global * int(np.prod(v.shape[1:], dtype=np.int64)) * v.dtype.itemsize
+                   for v in fields.values())
+        err = _h5.space_problem(comm, self.path, need)
+        if err is not None:
+            raise SnapshotError(self._msg(f"snapshot {attrs['iteration']} not written: {err}"))
         if self.parallel:
             if self.method == "redistribute":
                 lo, data = _h5.to_gid_blocks(comm, self.n_global, gid, fields)
