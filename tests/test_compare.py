@@ -67,3 +67,19 @@ def test_compare_bad_input(tmp_path):
         assert proc.returncode == 2, describe(proc)
         lines = [line for line in proc.stderr.splitlines() if line.strip()]
         assert len(lines) == 1 and lines[0].startswith("mpipack: error:") and word in lines[0], describe(proc)
+
+
+def test_a_damaged_peer_file_is_one_line(tmp_path):
+    """A binary file (UnicodeDecodeError before), a CSV of another format (silently ignored,
+    exit 0 before) and a bad number: one line naming the file, exit 2, before any run."""
+    binary = tmp_path / "peer.bin"
+    binary.write_bytes(b"\x00\x01\xff\xfe binary")
+    other = tmp_path / "other.csv"
+    other.write_text("a,b\n1,2\n")
+    bad = tmp_path / "bad.csv"
+    bad.write_text("label,seed,n,wall_seconds,work,max_overlap\nX,1,7,fast,10,0.1\n")
+    for f, words in ((binary, "not a text file"), (other, "not a curve"), (bad, "line 2")):
+        proc = cli(["compare", "--quick", "--peer", f, "--out", tmp_path / "cmp"], tmp_path, timeout=120)
+        assert proc.returncode == 2, describe(proc)
+        lines = [line for line in proc.stderr.splitlines() if line.strip()]
+        assert len(lines) == 1 and str(f) in lines[0] and words in lines[0], describe(proc)

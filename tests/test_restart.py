@@ -206,6 +206,12 @@ def test_vtk_command(tmp_path):
     assert set(mesh.point_data) >= {"diameter", "pressure", "contacts", "net_force"}
     assert np.all(mesh.point_data["net_force"] >= 0) and mesh.point_data["net_force"].max() > 0
     assert (out / "snapshots.pvd").exists()
+    # a truncated snapshot file: one line that names it
+    h5 = out / "snapshots.h5"
+    h5.write_bytes(h5.read_bytes()[:20000])
+    v = subprocess.run([sys.executable, "-m", "mpipack.cli", "vtk", str(out)], cwd=str(tmp_path),
+                       env=mpi_env(), capture_output=True, text=True, timeout=120)
+    assert v.returncode == 2 and str(h5) in v.stderr and "Traceback" not in v.stderr, describe(v)
 
 
 def test_coincident_centres_are_separated_the_same_on_any_rank_count(tmp_path):

@@ -207,13 +207,22 @@ def run_one(scene_src, base_sets, p, eps, seed, out, max_iter, metrics_every=0):
 
 
 # ---- peers ---------------------------------------------------------------------------------------
+MAX_PEER_BYTES = 64 * 1024 * 1024  # a peer's curve is a few KiB
+
+
 def read_peer(spec):
     """[(label, seed, n, rows)] from a --peer argument."""
     label, path = (spec.split("=", 1) if "=" in spec and not os.path.exists(spec) else (None, spec))
     if not os.path.isfile(path):
         raise CompareError(f"--peer: no such file: {path}")
-    with open(path) as f:
-        text = f.read()
+    if os.path.getsize(path) > MAX_PEER_BYTES:
+        raise CompareError(f"--peer: {path}: {os.path.getsize(path)} bytes, more than a peer's curve")
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except UnicodeDecodeError:
+        raise CompareError(f"--peer: {path}: not a text file (a CSV in compare's format or a "
+                           f"lammps_fire.py --keep-checks JSON)") from None
     if path.endswith(".json"):
         try:
             d = json.loads(text)
@@ -228,12 +237,20 @@ def read_peer(spec):
                 for c in checks]
         return [(label or "LAMMPS FIRE", int(d.get("seed", 0) or 0), n or None, rows)]
     out = {}
-    for r in csv.DictReader(text.splitlines()):
+    reader = csv.DictReader(text.splitlines())
+    missing = [k for k in ("wall_seconds", "work", "max_overlap") if k not in (reader.fieldnames or [])]
+    if missing:
+        raise CompareError(f"--peer: {path}: not a curve in compare's format (no column "
+                           f"{', '.join(missing)}; columns: {', '.join(PEER_COLUMNS)})")
+    for r in reader:
         lab = label or r.get("label") or os.path.splitext(os.path.basename(path))[0]
         seed = int(float(r.get("seed") or 0))
         n = int(float(r["n"])) if r.get("n") else None
-        row = {k: (float(r[k]) if r.get(k) not in (None, "") else math.nan)
-               for k in ("wall_seconds", "work", "max_overlap", "A", "W", "kkt_residual")}
+        try:
+            row = {k: (float(r[k]) if r.get(k) not in (None, "") else math.nan)
+                   for k in ("wall_seconds", "work", "max_overlap", "A", "W", "kkt_residual")}
+        except ValueError as e:
+            raise CompareError(f"--peer: {path}: line {reader.line_num}: {e}") from None
         out.setdefault((lab, seed, n), []).append(row)
     if not out:
         raise CompareError(f"--peer: {path}: no rows (columns: {', '.join(PEER_COLUMNS)})")

@@ -84,7 +84,8 @@ def convert_run(comm, run_dir, out_dir=None):
                 iters = sorted((int(g.attrs["iteration"]), g.name) for g in f["snapshots"].values())
             os.makedirs(os.path.join(out_dir, VTK_DIR), exist_ok=True)
         except (OSError, ValueError) as e:
-            err = (type(e).__name__, _h5.one_line(e))
+            msg = _h5.one_line(e)  # h5py's own messages do not name the file
+            err = (type(e).__name__, msg if h5_path in msg else f"{h5_path}: unreadable snapshot file ({msg})")
     iters, err = _h5.bcast(comm, (iters, err))
     if err is not None:
         raise (FileNotFoundError if err[0] == "FileNotFoundError" else ValueError)(err[1])
