@@ -30,7 +30,12 @@ print("COMPILED", ",".join(compiled))
 
 
 def probe(tmp_path, *sets):
-    args = [sys.executable, "-c", PROBE, str(tmp_path / "out")]
+    out = tmp_path / "out"
+    k = 1
+    while out.exists():  # a run never writes into another run's folder
+        k += 1
+        out = tmp_path / f"out-{k}"
+    args = [sys.executable, "-c", PROBE, str(out)]
     for s in sets:
         args += ["--set", s]
     proc = subprocess.run(args, cwd=str(REPO), env=mpi_env(), capture_output=True, text=True,

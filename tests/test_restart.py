@@ -157,7 +157,10 @@ def test_walltime_checkpoints_before_the_limit(tmp_path):
     p, s, _ = run_cli(2, tmp_path, ["n=500", "stop.max_iter=100000000"] + FIXED,
                       extra=["--walltime", "00:00:10"])
     assert p.returncode == 5, describe(p)
-    assert time.time() - t0 < 10 + 5
+    assert time.time() - t0 < 10 + 30  # mpirun's own start and end, on a loaded machine
+    # the ranks' own clock: the end of the loop came before the limit, counted from the
+    # process's start (the first iteration's age includes the start-up)
+    assert s["first_iteration_seconds"] + s["loop_seconds"] < 10, s
     assert s["stop_reason"] == "walltime" and s["checkpoint"]["iteration"] == s["iterations"] > 10
 
 
