@@ -103,17 +103,24 @@ def long_run(P, out, sets=()):
                             stderr=subprocess.PIPE, text=True)
 
 
-@pytest.mark.parametrize("P", [1, 2, 3])
-def test_sigusr1_checkpoints_every_rank_and_exits_5(tmp_path, P):
-    out = tmp_path / "out"
+def signal_long_run(P, out, sig):
+    """A long run on P ranks, sent ``sig`` once its first scheduled checkpoint says the loop is
+    running; returns (process, the time of the signal, stdout, stderr)."""
     proc = long_run(P, out, ["output.checkpoint_every=200"])
     deadline = time.time() + 120
-    # the first scheduled checkpoint says the loop is running
     while not (out / "checkpoint.h5").exists() and proc.poll() is None and time.time() < deadline:
         time.sleep(0.2)
     time.sleep(1)
-    proc.send_signal(signal.SIGUSR1)
+    t0 = time.time()
+    proc.send_signal(sig)
     stdout, stderr = proc.communicate(timeout=120)
+    return proc, t0, stdout, stderr
+
+
+@pytest.mark.parametrize("P", [1, 2, 3])
+def test_sigusr1_checkpoints_every_rank_and_exits_5(tmp_path, P):
+    out = tmp_path / "out"
+    proc, _, stdout, stderr = signal_long_run(P, out, signal.SIGUSR1)
     assert proc.returncode == 5, (proc.returncode, stdout, stderr)
     s = json.loads((out / "summary.json").read_text())
     assert s["exit_code"] == 5 and s["stop_reason"] == "signal"
@@ -136,14 +143,7 @@ def test_sigterm_or_sigint_to_mpirun_checkpoints_and_writes_the_summary(tmp_path
     rank stops at the same iteration with a checkpoint and a summary (exit 5) within that time;
     mpirun itself reports 1 for a job it ended."""
     out = tmp_path / "out"
-    proc = long_run(P, out, ["output.checkpoint_every=200"])
-    deadline = time.time() + 120
-    while not (out / "checkpoint.h5").exists() and proc.poll() is None and time.time() < deadline:
-        time.sleep(0.2)
-    time.sleep(1)
-    t0 = time.time()
-    proc.send_signal(sig)
-    stdout, stderr = proc.communicate(timeout=120)
+    proc, t0, stdout, stderr = signal_long_run(P, out, sig)
     assert proc.returncode in (1, 5), (proc.returncode, stdout, stderr)
     s = json.loads((out / "summary.json").read_text())
     assert s["exit_code"] == 5 and s["stop_reason"] == "signal", s

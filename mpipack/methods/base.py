@@ -86,3 +86,16 @@ class Method:
     def work(self, iterations, inner_iterations):
         """Particle-iterations of the kernel per sphere: inner ones for the nested methods."""
         return inner_iterations if self.counts_inner else iterations
+
+
+class PaperScheme(Method):
+    """A method of the paper's with fixed coefficients (``self.coeffs``), dual gain ``self.beta``
+    and a kernel ``self.kernel`` of the paper's signature (``kernels.daha``): the multiplier
+    update (2.10b) when lambda is not yet the current X's, then the position update."""
+
+    def kernel_pass(self, solver, x_other, xbar, red, n_local=None, all_sums=True):
+        st = solver.state
+        n_local = st.n_local if n_local is None else n_local
+        return self.kernel(st.x, x_other, st.x_new, n_local, st.diam, st.pair_offsets, st.pair_j,
+                           st.pair_lambda, xbar, *self.coeffs, self.beta, not st.lambda_fresh,
+                           red.acc("step"), red.maxima("step"))

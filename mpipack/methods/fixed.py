@@ -11,7 +11,7 @@ gamma = 0). Their stability depends on the parameters: ``mpipack check`` gives t
 from typing import NamedTuple
 
 from mpipack.kernels import daha as kernels
-from mpipack.methods.base import Method
+from mpipack.methods.base import PaperScheme
 
 
 class PaperCoefficients(NamedTuple):
@@ -34,7 +34,7 @@ def paper_coefficients(method, alpha, beta, gamma, c):
     raise ValueError(f"no one-pass kernel for method {method!r}")
 
 
-class FixedStep(Method):
+class FixedStep(PaperScheme):
     """DAHA or AHA with fixed parameters (``method.schedule = "fixed"``)."""
 
     def __init__(self, scene):
@@ -43,13 +43,6 @@ class FixedStep(Method):
         self.beta = float(m.beta)
         self.coeffs = paper_coefficients(m.name, m.alpha, m.beta, m.gamma, m.c)
         self.kernel = kernels.multipliers_and_step(m.form, scene.dim)
-
-    def kernel_pass(self, solver, x_other, xbar, red, n_local=None, all_sums=True):
-        st = solver.state
-        n_local = st.n_local if n_local is None else n_local
-        return self.kernel(st.x, x_other, st.x_new, n_local, st.diam, st.pair_offsets, st.pair_j,
-                           st.pair_lambda, xbar, *self.coeffs, self.beta, not st.lambda_fresh,
-                           red.acc("step"), red.maxima("step"))
 
     def iterate(self, solver):
         fig = solver.advance(solver.state.x_prev, solver.xbar)  # (2.10b) then (2.10a)

@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 
 from mpipack.kernels import daha as kernels
-from mpipack.methods.base import Method
+from mpipack.methods.base import PaperScheme
 from mpipack.parallel import neighbors
 from mpipack.parallel.reduction import Reduction
 
@@ -35,7 +35,7 @@ def nested_coefficients(method, alpha, tau):
     raise ValueError(f"not a nested method: {method!r}")
 
 
-class Nested(Method):
+class Nested(PaperScheme):
     """NAP or NAV (``method.name``), with method.l_inner inner steps at most and the inner
     criterion method.eps_inner."""
 
@@ -51,13 +51,6 @@ class Nested(Method):
         self.kernel = kernels.nested_step(m.name, m.form)
         # the multipliers of the KKT system (2.4) are NAV's times tau (its solve (2.6))
         self.kkt_lambda_scale = float(m.tau) if m.name == "nav" else 1.0
-
-    def kernel_pass(self, solver, x_other, xbar, red, n_local=None, all_sums=True):
-        st = solver.state
-        n_local = st.n_local if n_local is None else n_local
-        return self.kernel(st.x, x_other, st.x_new, n_local, st.diam, st.pair_offsets, st.pair_j,
-                           st.pair_lambda, xbar, *self.coeffs, self.beta, not st.lambda_fresh,
-                           red.acc("step"), red.maxima("step"))
 
     def iterate(self, s):
         """One outer iteration p -> p+1 of NAP (2.16) or NAV (2.17).
