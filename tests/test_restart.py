@@ -308,3 +308,19 @@ def test_a_damaged_checkpoint_is_refused_in_one_line(tmp_path, dataset, how, kee
     assert p2.returncode == 2, describe(p2)
     errors = [line for line in p2.stderr.splitlines() if "error:" in line]
     assert len(errors) == 1 and words in errors[0] and "Traceback" not in p2.stderr, describe(p2)
+
+
+def test_a_restart_says_what_it_inherits(tmp_path):
+    """The checkpoint's scene keeps its stop.* / output.* / neighbor.* settings on a restart; the
+    summary lists them (and the --set given now), and a bound already reached is said at once."""
+    p1, s1, _ = run_cli(1, tmp_path, ["n=200", "stop.max_iter=5"])
+    assert p1.returncode == 4, describe(p1)
+    (tmp_path / "again").mkdir()
+    (tmp_path / "more").mkdir()
+    p2, s2, _ = mpipack_run(1, tmp_path / "again", None, [], extra=["--restart", tmp_path / "out"], quiet=False)
+    assert p2.returncode == 4 and "at or beyond stop.max_iter = 5" in p2.stdout, describe(p2)
+    r = s2["restart"]
+    assert r["iteration"] == 5 and r["inherited"] == {"stop.max_iter": 5} and r["overrides"] == [], r
+    p3, s3, _ = mpipack_run(2, tmp_path / "more", None, ["stop.max_iter=auto"], extra=["--restart", tmp_path / "out"])
+    assert p3.returncode == 0, describe(p3)
+    assert s3["restart"]["overrides"] == ["stop.max_iter"] and s3["restart"]["inherited"] == {}, s3["restart"]

@@ -108,6 +108,27 @@ def resolve_scene(comm, args):
     return scene, state
 
 
+def restart_record(args, scene, state):
+    """What a restart took from its checkpoint and what it was told (summary.json's
+    ``restart``): the iteration, the --set keys given now, and the settings of the checkpoint's
+    scene it keeps that differ from the defaults (stop.*, output.*, neighbor.*), so that nothing
+    is inherited silently."""
+    import copy
+
+    from mpipack import config
+    given = {str(o).split("=", 1)[0].strip() for o in args.overrides} | set(getattr(args, "settings", None) or {})
+    now = scene.as_dict()
+    fresh = copy.deepcopy(now)  # the same scene with these sections as a new run resolves them
+    for section in ("stop", "output", "neighbor"):
+        fresh[section] = copy.deepcopy(config.DEFAULTS[section])
+    fresh = config.load(None, (), None, base=fresh).as_dict()
+    inherited = {f"{section}.{key}": value for section in ("stop", "output", "neighbor")
+                 for key, value in now[section].items()
+                 if f"{section}.{key}" not in given and value != fresh[section][key]}
+    return {"from": args.restart, "iteration": state.iteration, "overrides": sorted(given),
+            "inherited": inherited}
+
+
 # what makes a folder a run's (``engine.output``, ``mpipack vtk``)
 RUN_FILES = ("summary.json", "checkpoint.h5", "snapshots.h5", "snapshots.xmf", "metrics.csv",
              "snapshots.pvd", "vtk")
@@ -366,6 +387,12 @@ def _execute(comm, args, scene, state, out, walltime):
     if walltime is not None:
         hooks += walltime_hook(comm, walltime, checkpoints, scene.n, scene.dim)
     summary = base_summary(comm, scene, args)
+    if state is not None:
+        summary["restart"] = restart_record(args, scene, state)
+        if rank0 and state.iteration >= scene.stop.max_iter and not getattr(args, "silent", False):
+            print(f"mpipack: the checkpoint is at iteration {state.iteration}, at or beyond stop.max_iter = "
+                  f"{scene.stop.max_iter} (its scene's, kept on a restart): nothing to do; continue with "
+                  f"--set stop.max_iter=<larger>", flush=True)
     t0 = time.perf_counter()
     code, message, res, solver = None, None, None, None
     try:
