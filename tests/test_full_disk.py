@@ -74,3 +74,22 @@ def test_the_previous_checkpoint_stays_whole_when_the_disk_fills(tmp_path, small
     got, scalars, _ = read_checkpoint(comm, path)
     assert scalars["iteration"] == 1 and np.array_equal(got["x"], block["x"])
     assert [f.name for f in small_disk.iterdir() if f.name.endswith(".tmp")] == []
+
+
+@pytest.mark.parametrize("ranks", [1, 2, 3])
+def test_a_metrics_file_that_cannot_grow_stops_every_rank(tmp_path, small_disk, ranks):
+    """metrics.csv is rank 0's alone: its failure is broadcast, so that every rank stops (rank 0
+    leaving the loop alone left the others waiting in the next reduction)."""
+    out = small_disk / "run"
+    out.mkdir()
+    try:  # the disk full to the last byte
+        with open(small_disk / "filler", "wb", buffering=0) as f:
+            while True:
+                f.write(b"\0" * 4096)
+    except OSError:
+        pass
+    p = run_into(tmp_path, ranks, out, ["n=200", "output.metrics_every=5", "output.snapshots=false",
+                                       "stop.rule=eps", "stop.eps=0", "stop.max_iter=100"])
+    assert p.returncode == 2, describe(p)
+    errors = [line for line in p.stderr.splitlines() if "error:" in line]
+    assert len(errors) == 1 and "metrics.csv" in errors[0], describe(p)

@@ -101,7 +101,19 @@ def metrics_recorder(scene, comm, path, every, resume_after=None):
     from mpipack.stop import measures
     optimum = scene.output.w_optimum
     state = {"last": None}
-    if comm.rank == 0:
+
+    def rank0_writes(write):
+        """Rank 0 writes; every rank learns whether it could (one broadcast), so that a full
+        disk stops every rank (the hook's ``failed``), not rank 0 alone."""
+        err = None
+        if comm.rank == 0:
+            try:
+                write()
+            except OSError as e:
+                err = f"{path}: not written: {e.strerror or e}"
+        return comm.bcast_object(err)
+
+    def start():
         kept = []
         if resume_after is not None and os.path.exists(path):
             with open(path) as f:
@@ -111,18 +123,25 @@ def metrics_recorder(scene, comm, path, every, resume_after=None):
             f.writelines(kept)
 
     def record(ctx):
+        if hook.failed is not None:
+            return STOP
         if state["last"] == ctx.iteration:  # the end, right after a scheduled row
             return None
         state["last"] = ctx.iteration
         m, _ = measures.measure(ctx.solver)
-        if comm.rank != 0:
-            return None
         row = (ctx.iteration, ctx.elapsed, ctx.figures.get("relative_change", float("nan")),
                m["max_overlap"], m["overlap_A"], m["W"],
                m["W"] - optimum if optimum is not None else float("nan"),
                m["kkt_residual"], m["complementarity"], m["active_pairs"], m["force_imbalance"])
-        with open(path, "a") as f:
-            f.write(",".join(repr(v) if isinstance(v, float) else str(v) for v in row) + "\n")
-        return None
 
-    return Hook(record, every=every, at_end=True, name="metrics")
+        def append():
+            with open(path, "a") as f:
+                f.write(",".join(repr(v) if isinstance(v, float) else str(v) for v in row) + "\n")
+        hook.failed = rank0_writes(append)
+        return STOP if hook.failed is not None else None
+
+    hook = Hook(record, every=every, at_end=True, name="metrics")
+    hook.failed = rank0_writes(start)  # the run stops at its first iteration when this failed
+    if hook.failed is not None:
+        hook.every = 1
+    return hook

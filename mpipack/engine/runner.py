@@ -373,10 +373,12 @@ def _execute(comm, args, scene, state, out, walltime):
     hooks += list(getattr(args, "hooks", ()))
     if out is None:  # no files: a scene's file outputs are off
         scene = scene.replace(output={"metrics_every": 0, "snapshots": False, "checkpoint_every": 0})
+    metrics = None
     if scene.output.metrics_every > 0:
-        hooks.append(hooks_mod.metrics_recorder(scene, comm, os.path.join(out, "metrics.csv"),
-                                                scene.output.metrics_every,
-                                                resume_after=start_iter if state is not None else None))
+        metrics = hooks_mod.metrics_recorder(scene, comm, os.path.join(out, "metrics.csv"),
+                                             scene.output.metrics_every,
+                                             resume_after=start_iter if state is not None else None)
+        hooks.append(metrics)
     snapshots = None
     if scene.output.snapshots:
         snapshots = output.Snapshots(scene, comm, out, scene.output.snapshot_every,
@@ -419,7 +421,8 @@ def _execute(comm, args, scene, state, out, walltime):
         elif code is None:
             code = exit_code(scene, res)
         summary.update(result_summary(scene, comm, res, wall, args.profile))
-    failed = (snapshots.failed if snapshots is not None else None) or checkpoints.failed
+    failed = ((snapshots.failed if snapshots is not None else None) or checkpoints.failed
+              or (metrics.failed if metrics is not None else None))
     if failed is not None and code != EXIT_NUMERICAL:
         # a file could not be written (a full disk, a vanished folder): every rank knows it (the
         # writers agree), the run stopped, the previous checkpoint is whole
