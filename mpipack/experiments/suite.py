@@ -122,8 +122,12 @@ def one_point_checkpoint(folder, n, dim, form, log):
     path = os.path.join(seed_dir, "checkpoint.h5")
     if proc.returncode != 0 or not os.path.exists(path):
         raise RuntimeError(f"could not make the seed checkpoint (exit {proc.returncode}): {proc.stderr[-500:]}")
+    import json
+
     import h5py
     import numpy as np
+
+    from mpipack.io import _h5
     with h5py.File(path, "r+") as f:
         for k in ("x", "x_prev"):
             f["particles"][k][...] = np.zeros((n, dim))
@@ -132,6 +136,10 @@ def one_point_checkpoint(folder, n, dim, form, log):
             del f["history"][k]
             f["history"].create_dataset(k, shape=(0,), dtype=dt)
         f["history"]["offset"][...] = np.zeros(n + 1, dtype=f["history"]["offset"].dtype)
+        # the file's checksums, of the arrays as they now are (serial: one share is the whole)
+        sums = {f"{group}/{k}": str(_h5.checksum_rows(f[group][k][...], 0))
+                for group in ("particles", "history") for k in f[group]}
+        f.attrs["checksums"] = json.dumps(sums)
     return seed_dir
 
 
