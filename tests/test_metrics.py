@@ -58,7 +58,7 @@ def _two_sphere_kkt(form, r, lam, pen, floor, tol):
     mx = np.zeros(kernels.N_MET_MAX)
     pressure, contacts = np.zeros(2), np.zeros(2, dtype=np.int32)
     kernels.pair_metrics(form)(x, 2, diam, np.arange(2), po, pj, pl, np.zeros(2), 0.0, kernels.LAMBDA_FORCE,
-                               1.0, pen, floor, tol, False, acc, mx, pressure, contacts, np.zeros(2))
+                               1.0, pen, floor, tol, False, acc, mx, pressure, contacts, np.zeros(2), np.empty(0))
     kkt2, gw2 = exactsum.value(acc, 0), exactsum.value(acc, 1)
     return float(np.sqrt(kkt2 / gw2)), pressure[0]
 
@@ -101,7 +101,7 @@ def test_force_imbalance_is_the_net_force_over_the_contact_forces(form):
         mx = np.zeros(kernels.N_MET_MAX)
         kernels.pair_metrics(form)(x, 2, np.ones(2), np.arange(2), po, pj, np.array([lam, lam]),
                                    np.zeros(2), 0.0, kernels.LAMBDA_STORED, 1.0, 0.0, 0.0, 1e-3, False,
-                                   acc, mx, np.zeros(2), np.zeros(2, dtype=np.int32), np.zeros(2))
+                                   acc, mx, np.zeros(2), np.zeros(2, dtype=np.int32), np.zeros(2), np.empty(0))
         kkt2, gw2, cf2 = (exactsum.value(acc, k) for k in (kernels.MET_KKT2, kernels.MET_GW2, kernels.MET_CF2))
         return np.sqrt(kkt2 / gw2), (np.sqrt(kkt2 / cf2) if cf2 > 0 else np.inf)
 
@@ -132,7 +132,7 @@ def test_net_force_per_sphere_is_its_row_of_the_kkt_residual(form):
     net = np.full(3, -1.0)
     kernels.pair_metrics(form)(x, 3, np.ones(3), np.arange(3), po, pj, np.array([lam, lam]),
                                np.zeros(2), 0.0, kernels.LAMBDA_STORED, 1.0, 0.0, 0.0, 1e-3, False,
-                               acc, mx, np.zeros(3), np.zeros(3, dtype=np.int32), net)
+                               acc, mx, np.zeros(3), np.zeros(3, dtype=np.int32), net, np.empty(0))
     assert net == pytest.approx([r / 4, r / 4, 3.0], rel=1e-12)
     kkt2 = exactsum.value(acc, kernels.MET_KKT2)
     assert kkt2 == pytest.approx(9.0 + 2 * (r / 4) ** 2, rel=1e-12)

@@ -33,7 +33,7 @@ def runs(tmp_path_factory):
 def test_net_force_is_the_kkt_residual_per_sphere_on_1_2_3_ranks(runs):
     from mpipack.io.snapshots import list_snapshots, read_snapshot
     path1, summary1 = runs[1]
-    assert list_snapshots(str(path1)) == [200, 400]
+    assert list_snapshots(str(path1)) == [0, 200, 400]  # the start, the schedule
     f1, a1 = read_snapshot(str(path1), 400)
     g = f1["net_force"]
     assert g.shape == (300,) and np.all(g >= 0) and g.max() > 0

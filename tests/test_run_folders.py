@@ -45,7 +45,7 @@ def test_overwrite_replaces_the_old_run_whole(tmp_path, ranks):
     assert s["n"] == 80 and s["seed"] == 2 and s["ranks"] == ranks
     fields, _ = read_snapshot(str(out / "snapshots.h5"))
     assert fields["position"].shape[0] == 80
-    assert list_snapshots(str(out / "snapshots.h5")) == [s["iterations"]]  # no snapshot of the old run
+    assert list_snapshots(str(out / "snapshots.h5")) == [0, s["iterations"]]  # no snapshot of the old run
 
 
 @pytest.mark.parametrize("ranks", [1, 2, 3])

@@ -7,8 +7,11 @@ Run folder (``--out``, default mpipack-out/<scene name>):
 
     summary.json     what ran, how it ended (every exit), the certificate, figures, timings
     metrics.csv      error measures every output.metrics_every iterations (when asked)
-    snapshots.h5     output.snapshot_every iterations and the final state (io/snapshots.py)
-    snapshots.xmf    the same series for ParaView (File > Open, or pvpython OpenDataFile)
+    snapshots.h5     the start (iteration 0), every output.snapshot_every iterations and the
+                     end, with the contact pairs (io/snapshots.py)
+    snapshots.xmf    the same series for ParaView (File > Open, or pvpython OpenDataFile);
+                     snapshots_contacts.xmf: its contact network (the force chains)
+    view.py          a ParaView script showing them: xvfb-run -a pvbatch view.py --png view.png
     checkpoint.h5    the last checkpoint: everything to continue bit for bit (--restart)
     vtk/             after ``mpipack vtk RUN_DIR``: one .vtu per snapshot and snapshots.pvd
 """
@@ -44,15 +47,24 @@ def file_attrs(scene, comm):
 def snapshot_fields(solver):
     """Per-sphere fields of a snapshot, local rows (collective: a metrics pass for the
     pressure mu_i = sum_j lambda_ij, the active contacts and the net force |g_i|, the sphere's
-    row of the KKT residual). Returns (gid, fields, figures)."""
-    fig, spheres = measures.measure(solver, overlap_a=False)
+    row of the KKT residual), and the contact pairs: (gid_i, gid_j, lambda_ij) with
+    lambda_ij > 0 and gid_i < gid_j (each pair once over all ranks), lambda_ij the multiplier
+    the pressure sums. Returns (gid, fields, figures, pairs)."""
     st = solver.state
     n = st.n_local
-    return st.gid[:n], {"position": st.x[:n], "diameter": st.diam[:n], **spheres}, fig
+    entries = int(st.pair_offsets[n])
+    pair_force = np.zeros(entries)
+    fig, spheres = measures.measure(solver, overlap_a=False, pair_force=pair_force)
+    gi = np.repeat(st.gid[:n], np.diff(st.pair_offsets[:n + 1]))
+    gj = st.gid[st.pair_j[:entries]]
+    keep = (pair_force > 0) & (gi < gj)
+    pairs = (gi[keep].astype(np.int64), gj[keep].astype(np.int64), pair_force[keep])
+    return st.gid[:n], {"position": st.x[:n], "diameter": st.diam[:n], **spheres}, fig, pairs
 
 
 class Snapshots:
-    """Snapshots every ``every`` iterations (0: only the final state) and at the end."""
+    """Snapshots of the start (iteration 0; not again on a restart, whose file keeps it), every
+    ``every`` iterations (0: none on a schedule) and of the end, each with its contact pairs."""
 
     def __init__(self, scene, comm, out_dir, every, truncate_after=None):
         self.scene, self.comm, self.every = scene, comm, every
@@ -62,13 +74,25 @@ class Snapshots:
         self.last_iteration = None
         self.seconds = 0.0
         self.failed = None  # the one-line message of a snapshot that could not be written
+        self._scheduled = None
 
     def hooks(self):
-        return [Hook(self._due, every=self.every if self.every > 0 else None, at_end=True,
-                     name="snapshot")]
+        self._scheduled = Hook(self._due, every=self.every if self.every > 0 else None, at_end=True,
+                               name="snapshot")
+        if self.truncate_after is not None:  # a restart: the file holds the start already
+            return [self._scheduled]
+        return [Hook(self._start, at_start=True, name="snapshot-start"), self._scheduled]
+
+    def _start(self, ctx):
+        """The initial state, iteration 0. The loop ignores what an at_start hook answers: a
+        failure stops the run after its first iteration (``_due``)."""
+        if not self.safe_write(ctx.solver, ctx.iteration, ctx.elapsed, ctx.figures):
+            self._scheduled.every = 1
 
     def _due(self, ctx):
         """A snapshot on schedule; one that cannot be written stops the run (collectively)."""
+        if self.failed is not None and ctx.result is None:  # the start's failure
+            return STOP
         return None if self.safe_write(ctx.solver, ctx.iteration, ctx.elapsed, ctx.figures) else STOP
 
     def safe_write(self, solver, iteration, elapsed, figures):
@@ -89,11 +113,12 @@ class Snapshots:
             self.writer = SnapshotWriter(self.comm, self.path, self.scene.n, self.scene.dim,
                                          file_attrs(self.scene, self.comm),
                                          truncate_after=self.truncate_after)
-        gid, fields, fig = snapshot_fields(solver)
+        gid, fields, fig, pairs = snapshot_fields(solver)
         self.writer.write(gid, fields, {
             "iteration": iteration, "wall_seconds": elapsed,
             "relative_change": figures.get("relative_change", float("nan")),
-            "max_overlap": fig["max_overlap"], "W": fig["W"], "kkt_residual": fig["kkt_residual"]})
+            "max_overlap": fig["max_overlap"], "W": fig["W"], "kkt_residual": fig["kkt_residual"]},
+            pairs=pairs)
         self.last_iteration = iteration
         self.seconds += time.perf_counter() - t0
 

@@ -132,6 +132,9 @@ def restart_record(args, scene, state):
 # what makes a folder a run's (``engine.output``, ``mpipack vtk``)
 RUN_FILES = ("summary.json", "checkpoint.h5", "snapshots.h5", "snapshots.xmf", "metrics.csv",
              "snapshots.pvd", "vtk")
+# made from a run's files (ParaView's index of the contacts and its script, mpipack post and
+# export): removed with the run they were made from by --overwrite, not a run by themselves
+DERIVED_FILES = ("snapshots_contacts.xmf", "snapshots_contacts.pvd", "view.py", "post", "export")
 
 
 def run_files(folder):
@@ -173,6 +176,7 @@ def choose_run_folder(args, scene):
                       f"--restart {explicit}, replace it with --overwrite, or choose another --out"), None
     if held:
         import shutil
+        held += [f for f in DERIVED_FILES if os.path.lexists(os.path.join(explicit, f))]
         try:
             for f in held:
                 path = os.path.join(explicit, f)

@@ -12,10 +12,10 @@ needs it, so a run that writes no file never loads them.
 """
 
 from .checkpoint import CheckpointError, read_checkpoint, write_checkpoint
-from .snapshots import SnapshotError, SnapshotWriter, list_snapshots, read_snapshot
+from .snapshots import SnapshotError, SnapshotWriter, list_snapshots, read_pairs, read_snapshot
 from .names import CHECKPOINT_FILE, PVD_FILE, SNAPSHOT_FILE, VTK_DIR, XDMF_FILE
 from .vtk import convert_run
 
-__all__ = ["SnapshotWriter", "SnapshotError", "read_snapshot", "list_snapshots",
+__all__ = ["SnapshotWriter", "SnapshotError", "read_snapshot", "read_pairs", "list_snapshots",
            "write_checkpoint", "read_checkpoint", "CheckpointError", "convert_run",
            "SNAPSHOT_FILE", "XDMF_FILE", "CHECKPOINT_FILE", "PVD_FILE", "VTK_DIR"]

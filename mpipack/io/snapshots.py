@@ -19,12 +19,24 @@ per-particle dataset is global id i::
         contacts      (N,)     int32     partners with lambda_ij > 0
         net_force     (N,)     float64   |g_i|, g_i = (X_i - Xbar) + sum_j lambda_ij grad_i phi_ij:
                                          the sphere's row of the KKT residual (run snapshots)
+        radius        (N,)     float64   d_i / 2, added by the writer (ParaView scales sphere
+                                         glyphs by it; the Xdmf3 readers skip XDMF Function
+                                         items, so it is stored, not computed in the XDMF)
         position_xy   (N, 2)   float64   1D runs only: (x, 0), for ParaView (see xdmf.py)
         <any other>   (N, ...)           any further field the caller passes, its dtype kept
+        pairs/                           the contact network, when the caller gives it (every
+                                         run snapshot; absent = not recorded, empty = no contact)
+            gid       (M, 2)   int64     (gid_i, gid_j), gid_i < gid_j, of every pair with
+                                         lambda_ij > 0, rows sorted by (gid_i, gid_j): the same
+                                         file for any number of ranks; M may be 0
+            lambda    (M,)     float64   lambda_ij of each row
+                                         (read_pairs(path, iteration) reads them back)
 
 Datasets are contiguous and unfiltered (what parallel HDF5 writes fastest), allocated when
-created and never pre-filled. Beside the file, ``<stem>.xmf`` (rewritten after each snapshot
-by rank 0) lets ParaView open the series directly.
+created and never pre-filled. Beside the file, rewritten by rank 0 after each snapshot:
+``<stem>.xmf`` (the spheres) and ``<stem>_contacts.xmf`` (the contact network, when snapshots
+hold pairs) let ParaView open the series directly (xdmf.py); ``view.py`` (written when the
+writer opens the file, paraview.py) shows them: ``pvbatch view.py --png view.png``.
 
 How rows reach gid order. Particles are owned by space, so a rank holds an arbitrary set of
 gids. Two ways are implemented (``method``):
@@ -34,6 +46,10 @@ gids. Two ways are implemented (``method``):
                               writes one contiguous hyperslab per dataset, collectively
     "points"                  each rank sorts its rows by gid and writes them through an HDF5
                               point selection (an index-list write, no communication)
+
+Pairs go the first way with either method: each to the owner of gid_i's block (one alltoallv
+for the gids, one for lambda), sorted there, written at the offset an exclusive scan of the
+counts gives.
 
 Measured with ``tools/io_bench.py --methods`` at N = 1e6 on 2 ranks (gids scattered at random
 over the ranks, as after a Gaussian start; three runs of 3-5 writes, medians, on a shared 2-core
@@ -62,7 +78,7 @@ import time
 
 import numpy as np
 
-from . import _h5, xdmf as _xdmf
+from . import _h5, paraview as _paraview, xdmf as _xdmf
 
 FORMAT = "mpipack-snapshots"
 FORMAT_VERSION = 1
@@ -185,6 +201,13 @@ class SnapshotWriter:
             self._entries = []
         if self._entries:
             self._write_xdmf()
+        if self.xdmf_path is not None:
+            try:
+                _paraview.write_view(os.path.dirname(self.path),
+                                     os.path.splitext(os.path.basename(self.path))[0])
+            except OSError as e:
+                raise SnapshotError(f"{_paraview.view_path(os.path.dirname(self.path))}: not written: "
+                                    f"{_h5.one_line(e.strerror or e)}") from None
 
     def _write_xdmf(self):
         if self.xdmf_path is not None and self.comm.rank == 0:
@@ -215,14 +238,70 @@ class SnapshotWriter:
         return {name: np.ascontiguousarray(fields[name], dtype=dt).reshape((-1,) + tuple(tr))
                 for name, dt, tr in ref}
 
-    def write(self, local_gid, fields, attrs):
+    def _check_pairs(self, pairs):
+        """(gid (m, 2) int64, lambda (m,) float64) of this rank's pairs, or None when no rank
+        gives pairs (a rank giving None while others give pairs gives none). Collective."""
+        comm = self.comm
+        err, pg, pl = None, np.empty((0, 2), np.int64), np.empty(0, np.float64)
+        if pairs is not None:
+            try:
+                gi, gj, lam = pairs
+                gi = np.asarray(gi, dtype=np.int64).ravel()
+                gj = np.asarray(gj, dtype=np.int64).ravel()
+                pl = np.ascontiguousarray(lam, dtype=np.float64).ravel()
+            except (TypeError, ValueError) as e:
+                err = f"pairs must be (gid_i, gid_j, lambda) arrays: {_h5.one_line(e)}"
+            else:
+                if not (len(gi) == len(gj) == len(pl)):
+                    err = f"pairs have {len(gi)}, {len(gj)}, {len(pl)} rows on rank {comm.rank}"
+                elif len(gi) and (gi.min() < 0 or gj.max() >= self.n_global or np.any(gi >= gj)):
+                    err = f"pairs on rank {comm.rank} are not 0 <= gid_i < gid_j < {self.n_global}"
+                else:
+                    pg = np.column_stack([gi, gj]) if len(gi) else pg
+        given = comm.mpi.allreduce(int(pairs is not None)) if comm.size > 1 else int(pairs is not None)
+        err = _h5.first_error(comm, err)
+        if err is not None:
+            raise ValueError(f"{self.path}: snapshot not written: {err}")
+        return (np.ascontiguousarray(pg), pl) if given else None
+
+    def _sorted_pairs(self, pg, pl):
+        """(first row, total M, rows, lambdas): the pairs sorted by (gid_i, gid_j), this rank's
+        contiguous share of them (parallel: the pairs of its gid block; serial: all on rank 0,
+        none elsewhere). Collective; duplicate pairs raise ValueError on every rank."""
+        comm, P = self.comm, self.comm.size
+        if P > 1 and self.parallel:
+            dest = ((pg[:, 0] + 1) * P - 1) // self.n_global
+            order = np.argsort(dest, kind="stable")
+            send = np.bincount(dest, minlength=P).astype(np.int64)
+            recv = np.empty(P, dtype=np.int64)
+            comm.mpi.Alltoall(send, recv)
+            pg = _h5._alltoallv_rows(comm, pg[order], send, recv)
+            pl = _h5._alltoallv_rows(comm, pl[order], send, recv)
+        elif P > 1:
+            pg, pl = _gather_rows(comm, pg), _gather_rows(comm, pl)
+            if comm.rank != 0:
+                pg, pl = pg[:0], pl[:0]
+        order = np.lexsort((pg[:, 1], pg[:, 0]))
+        pg, pl = pg[order], pl[order]
+        dup = len(pg) > 1 and bool(np.any((pg[1:] == pg[:-1]).all(axis=1)))
+        err = _h5.first_error(comm, f"a pair is given twice (rank {comm.rank})" if dup else None)
+        if err is not None:
+            raise ValueError(f"{self.path}: snapshot not written: {err}")
+        start, total = _h5.exscan(comm, len(pg))
+        return start, total, pg, pl
+
+    def write(self, local_gid, fields, attrs, pairs=None):
         """Write one snapshot, collectively (every rank calls it, a rank may hold no rows).
 
         local_gid : (n_local,) int global ids of this rank's rows, in any order
         fields : {name: (n_local,) or (n_local, k) array} rows aligned with local_gid
-            (position, diameter, pressure, contacts; any others are stored as well)
+            (position, diameter, pressure, contacts; any others are stored as well); the
+            writer adds radius = diameter / 2
         attrs : snapshot attributes; must hold ``iteration``; rank 0's values are written
             (wall times differ between ranks)
+        pairs : None, or (gid_i, gid_j, lambda) of this rank's contact pairs (int64, int64,
+            float64 arrays of one length, possibly 0): each pair given by exactly one rank,
+            gid_i < gid_j; stored sorted as ``pairs/gid`` and ``pairs/lambda``
 
         Returns this rank's wall time for the write, in seconds.
         """
@@ -240,11 +319,19 @@ class SnapshotWriter:
         if "iteration" not in attrs:
             raise ValueError("snapshot attrs must hold 'iteration'")
         attrs["iteration"] = int(attrs["iteration"])
+        pairs = self._check_pairs(pairs)
+        radius = "diameter" in fields and "radius" not in fields
         need = sum(self.n_global * int(np.prod(v.shape[1:], dtype=np.int64)) * v.dtype.itemsize
                    for v in fields.values())
+        if radius:
+            need += self.n_global * fields["diameter"].dtype.itemsize
+        if pairs is not None:
+            need += _h5.exscan(comm, len(pairs[1]))[1] * (2 * 8 + 8)
         err = _h5.space_problem(comm, self.path, need)
         if err is not None:
             raise SnapshotError(self._msg(f"snapshot {attrs['iteration']} not written: {err}"))
+        if pairs is not None:
+            pairs = self._sorted_pairs(*pairs)
         if self.parallel:
             if self.method == "redistribute":
                 lo, data = _h5.to_gid_blocks(comm, self.n_global, gid, fields)
@@ -256,28 +343,33 @@ class SnapshotWriter:
                 if total != self.n_global:
                     raise ValueError(f"{self.path}: snapshot not written: {total} rows for N = {self.n_global}")
                 data = {k: _h5.take_rows(v, order) for k, v in fields.items()}
+            if radius:
+                data["radius"] = data["diameter"] * 0.5
             err = None
             try:
                 if self._xfer is None:
                     self._xfer = _h5.dxpl(True)
                 with _h5.open_file(comm, self.path, "r+", True) as f:
-                    self._write_group(f, attrs, data, where, self._xfer)
+                    self._write_group(f, attrs, data, where, self._xfer, pairs)
             except Exception as e:
                 err = self._msg(f"snapshot {attrs['iteration']} not written: {_h5.one_line(e)}")
         else:
             data = _h5.gather_to_root(comm, self.n_global, gid, fields)
             err = None
             if comm.rank == 0:
+                if radius:
+                    data["radius"] = data["diameter"] * 0.5
                 try:
                     with _h5.open_file(comm, self.path, "r+", False, locking=False) as f:
-                        self._write_group(f, attrs, data, 0, None)
+                        self._write_group(f, attrs, data, 0, None, pairs)
                 except Exception as e:
                     err = self._msg(f"snapshot {attrs['iteration']} not written: {_h5.one_line(e)}")
             err = _h5.bcast(comm, err)
         err = _h5.first_error(comm, err)
         if err is None and comm.rank == 0:
             entry = {"iteration": attrs["iteration"], "group": f"/snapshots/{_group_name(attrs['iteration'])}",
-                     "fields": {k: ((self.n_global,) + v.shape[1:], v.dtype.str) for k, v in fields.items()}}
+                     "fields": {k: ((self.n_global,) + v.shape[1:], v.dtype.str) for k, v in data.items()},
+                     "pairs": pairs[1] if pairs is not None else None}
             self._entries = [e for e in self._entries if e["iteration"] != entry["iteration"]]
             self._entries.append(entry)
             self._entries.sort(key=lambda e: e["iteration"])
@@ -292,9 +384,10 @@ class SnapshotWriter:
         self.last_seconds = time.perf_counter() - t0
         return self.last_seconds
 
-    def _write_group(self, f, attrs, data, where, xfer):
+    def _write_group(self, f, attrs, data, where, xfer, pairs=None):
         """Create the snapshot group and its datasets and write this rank's rows: a block
-        starting at row ``where`` (int), or the rows listed in ``where`` (array, points)."""
+        starting at row ``where`` (int), or the rows listed in ``where`` (array, points); and
+        the pairs (first row, total, rows, lambdas) from ``_sorted_pairs``."""
         if "topology" not in f:
             lo, hi = (_h5.gid_block(self.n_global, self.comm.size, self.comm.rank)
                       if self.parallel else (0, self.n_global))
@@ -313,6 +406,11 @@ class SnapshotWriter:
                 _h5.write_points(d, where, v, xfer)
             else:
                 _h5.write_rows(d, where, v, xfer)
+        if pairs is not None:
+            start, total, pg, pl = pairs
+            p = _h5.create_group(g, "pairs")
+            _h5.write_rows(_h5.create_dataset(p, "gid", (total, 2), np.int64), start, pg, xfer)
+            _h5.write_rows(_h5.create_dataset(p, "lambda", (total,), np.float64), start, pl, xfer)
         _h5.set_attrs(g, attrs)
 
     def close(self):
@@ -327,19 +425,51 @@ class SnapshotWriter:
         return False
 
 
+def _gather_rows(comm, arr):
+    """Every rank's rows of arr on rank 0 in rank order (others get their own back)."""
+    counts = np.array(comm.mpi.allgather(len(arr)), dtype=np.int64)
+    arr = np.ascontiguousarray(arr)
+    rtype = _h5._row_type(arr)
+    try:
+        if comm.rank == 0:
+            recv = np.empty((int(counts.sum()),) + arr.shape[1:], dtype=arr.dtype)
+            comm.mpi.Gatherv([arr, len(arr), rtype], [recv, (counts, _h5._displs(counts)), rtype], root=0)
+            return recv
+        comm.mpi.Gatherv([arr, len(arr), rtype], None, root=0)
+        return arr
+    finally:
+        rtype.Free()
+
+
+def _snapshot_group(f, path, iteration):
+    snaps = f["snapshots"]
+    names = sorted(snaps)
+    if not names:
+        raise SnapshotError(f"{path}: holds no snapshot")
+    name = names[-1] if iteration is None else _group_name(iteration)
+    if name not in snaps:
+        raise SnapshotError(f"{path}: no snapshot of iteration {iteration}")
+    return snaps[name]
+
+
 def read_snapshot(path, iteration=None):
     """(fields, attrs) of one snapshot, serially (tests, post-processing): iteration None means
-    the last one. fields: {name: (N, ...) array in gid order}."""
+    the last one. fields: {name: (N, ...) array in gid order} (the contact pairs: read_pairs)."""
+    h5py = _h5.h5py()
+    with h5py.File(path, "r") as f:
+        g = _snapshot_group(f, path, iteration)
+        return {k: g[k][()] for k in g if isinstance(g[k], h5py.Dataset)}, _h5.read_attrs(g)
+
+
+def read_pairs(path, iteration=None):
+    """(gid (M, 2) int64, lambda (M,) float64) of one snapshot's contact pairs, rows sorted by
+    (gid_i, gid_j), serially; None when the snapshot does not record them. iteration None
+    means the last snapshot."""
     with _h5.h5py().File(path, "r") as f:
-        snaps = f["snapshots"]
-        names = sorted(snaps)
-        if not names:
-            raise SnapshotError(f"{path}: holds no snapshot")
-        name = names[-1] if iteration is None else _group_name(iteration)
-        if name not in snaps:
-            raise SnapshotError(f"{path}: no snapshot of iteration {iteration}")
-        g = snaps[name]
-        return {k: g[k][()] for k in g}, _h5.read_attrs(g)
+        g = _snapshot_group(f, path, iteration)
+        if "pairs" not in g:
+            return None
+        return g["pairs/gid"][()].reshape(-1, 2), g["pairs/lambda"][()]
 
 
 def list_snapshots(path):

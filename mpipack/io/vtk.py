@@ -4,13 +4,18 @@
 
     <run_dir>/vtk/snapshot_<iteration, 10 digits>.vtu   unstructured grid: N points (z = 0
                                                         in 1D/2D), N vertex cells, point data
-                                                        diameter, pressure, contacts (and every
-                                                        other (N,) or (N, k) field)
+                                                        diameter, radius, pressure, contacts
+                                                        (and every other (N,) or (N, k) field)
     <run_dir>/snapshots.pvd                             the collection, timestep = iteration
+    <run_dir>/vtk/contacts_<iteration>.vtu              snapshots holding pairs only: the same
+                                                        N points, one line cell per contact
+                                                        pair (M, possibly 0), cell data lambda
+    <run_dir>/snapshots_contacts.pvd                    their collection (when there are any)
+    <run_dir>/view.py                                   the ParaView script (paraview.py):
+                                                        ``xvfb-run -a pvbatch view.py --vtk --png x.png``
 
-In ParaView: open the .pvd, add a Glyph filter with Glyph Type Sphere, Scale Array =
-diameter, Scale Factor = 1 (the sphere source has radius 0.5, so the glyph's diameter is d_i),
-Glyph Mode "All Points", and colour by pressure.
+In ParaView: open the .pvd, add a Glyph filter with Glyph Type Sphere, Radius 1, Scale Array =
+radius, Scale Factor = 1, Glyph Mode "All Points", and colour by pressure (what view.py does).
 
 Under mpirun each rank converts snapshots k with k mod P == rank, reading them with serial h5py
 (read-only opens of one file by several processes are safe); rank 0 writes the .pvd.
@@ -22,12 +27,18 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from . import _h5
+from . import _h5, paraview as _paraview
 from .names import PVD_FILE, SNAPSHOT_FILE, VTK_DIR
+
+CONTACTS_PVD_FILE = os.path.splitext(PVD_FILE)[0] + "_contacts.pvd"
 
 
 def _vtu_name(iteration):
     return f"snapshot_{int(iteration):010d}.vtu"
+
+
+def _contacts_vtu_name(iteration):
+    return f"contacts_{int(iteration):010d}.vtu"
 
 
 def write_pvd(path, entries):
@@ -42,23 +53,40 @@ def write_pvd(path, entries):
     return path
 
 
+def _points(group):
+    pos = group["position"][()]
+    points = np.zeros((pos.shape[0], 3), dtype=np.float64)
+    points[:, :pos.shape[1]] = pos
+    return points
+
+
 def snapshot_mesh(group):
     """meshio.Mesh of one snapshot group (h5py.Group): points padded to 3 components, one
-    vertex cell per point, every other field as point data."""
+    vertex cell per point, every other field as point data (radius = diameter / 2 added for
+    files written before the writer stored it)."""
     import meshio
-    pos = group["position"][()]
-    n, b = pos.shape
-    points = np.zeros((n, 3), dtype=np.float64)
-    points[:, :b] = pos
+    points = _points(group)
+    n = points.shape[0]
     point_data = {}
-    for k in group:
-        if k in ("position", "position_xy"):
+    for k, d in group.items():
+        if k in ("position", "position_xy") or not hasattr(d, "dtype"):
             continue
-        v = group[k][()]
+        v = d[()]
         if v.dtype.kind in "fiu" and v.ndim in (1, 2) and v.shape[0] == n:
             point_data[k] = v
+    if "radius" not in point_data and "diameter" in point_data:
+        point_data["radius"] = point_data["diameter"] * 0.5
     cells = [("vertex", np.arange(n, dtype=np.int64).reshape(-1, 1))]
     return meshio.Mesh(points, cells, point_data=point_data)
+
+
+def contacts_mesh(group):
+    """meshio.Mesh of one snapshot's contact network (its ``pairs`` group): the N points, one
+    line cell per pair, cell data lambda."""
+    import meshio
+    lines = group["pairs/gid"][()].reshape(-1, 2).astype(np.int64)
+    lam = group["pairs/lambda"][()].astype(np.float64)
+    return meshio.Mesh(_points(group), [("line", lines)], cell_data={"lambda": [lam]})
 
 
 def convert_run(comm, run_dir, out_dir=None):
@@ -67,7 +95,8 @@ def convert_run(comm, run_dir, out_dir=None):
     run_dir : a run's output folder (holding snapshots.h5) or the snapshot file itself
     out_dir : where to write (default: the folder of the snapshot file)
 
-    Returns the list of written paths (every .vtu, then the .pvd), the same on every rank.
+    Returns the list of written paths (every snapshot .vtu, then the .pvd; the contacts files and
+    view.py are not listed), the same on every rank.
     Raises FileNotFoundError / ValueError on every rank when there is nothing to convert.
     """
     run_dir = os.fspath(run_dir)
@@ -81,7 +110,8 @@ def convert_run(comm, run_dir, out_dir=None):
             with _h5.h5py().File(h5_path, "r") as f:
                 if "snapshots" not in f:
                     raise ValueError(f"{h5_path}: not an mpipack snapshot file")
-                iters = sorted((int(g.attrs["iteration"]), g.name) for g in f["snapshots"].values())
+                iters = sorted((int(g.attrs["iteration"]), g.name, "pairs" in g)
+                               for g in f["snapshots"].values())
             os.makedirs(os.path.join(out_dir, VTK_DIR), exist_ok=True)
         except (OSError, ValueError) as e:
             msg = _h5.one_line(e)  # h5py's own messages do not name the file
@@ -96,23 +126,30 @@ def convert_run(comm, run_dir, out_dir=None):
         if mine:
             import meshio
             with _h5.h5py().File(h5_path, "r") as f:
-                for it, gname in mine:
+                for it, gname, pairs in mine:
                     mesh = snapshot_mesh(f[gname])
                     meshio.write(os.path.join(out_dir, VTK_DIR, _vtu_name(it)), mesh,
                                  file_format="vtu")
+                    if pairs:
+                        meshio.write(os.path.join(out_dir, VTK_DIR, _contacts_vtu_name(it)),
+                                     contacts_mesh(f[gname]), file_format="vtu")
     except Exception as e:
         err = f"{h5_path}: VTK conversion failed on rank {comm.rank}: {_h5.one_line(e)}"
     err = _h5.first_error(comm, err)
     if err is not None:
         raise ValueError(err)
-    paths = [os.path.join(out_dir, VTK_DIR, _vtu_name(it)) for it, _ in iters]
+    paths = [os.path.join(out_dir, VTK_DIR, _vtu_name(it)) for it, _, _ in iters]
     pvd = os.path.join(out_dir, PVD_FILE)
     err = None
     if comm.rank == 0:
         try:
-            write_pvd(pvd, [(it, f"{VTK_DIR}/{_vtu_name(it)}") for it, _ in iters])
+            write_pvd(pvd, [(it, f"{VTK_DIR}/{_vtu_name(it)}") for it, _, _ in iters])
+            net = [(it, f"{VTK_DIR}/{_contacts_vtu_name(it)}") for it, _, pairs in iters if pairs]
+            if net:
+                write_pvd(os.path.join(out_dir, CONTACTS_PVD_FILE), net)
+            _paraview.write_view(out_dir, os.path.splitext(PVD_FILE)[0])
         except OSError as e:
-            err = f"{pvd}: not written: {_h5.one_line(e)}"
+            err = f"{e.filename or pvd}: not written: {_h5.one_line(e.strerror or e)}"
     err = _h5.bcast(comm, err)
     if err is not None:
         raise ValueError(err)

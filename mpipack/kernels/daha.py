@@ -432,8 +432,9 @@ def entry_multiplier(form, lam, phi, r2, dij, beta, lambda_mode, pen, lam_floor,
 @njit(cache=True, inline="always")
 def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda, xbar, beta,
                   lambda_mode, lam_scale, pen, lam_floor, contact_tol, measures_a, acc, maxima,
-                  pressure, contacts, net_force):
+                  pressure, contacts, net_force, pair_force):
     dim = x.shape[1]
+    keep_pair_force = pair_force.shape[0] > 0
     fbuf = exactsum.staging(acc)
     g = np.zeros(dim)
     d = np.zeros(dim)
@@ -466,6 +467,8 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
             if lambda_mode == LAMBDA_UPDATE:
                 pair_lambda[e] = lam
             lam = lam * lam_scale
+            if keep_pair_force:
+                pair_force[e] = lam
             if phi > 0.0:
                 if form == SMOOTH:
                     if r2 < min_ratio2 * (dij * dij):
@@ -517,16 +520,16 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
 
 @njit(cache=True)
 def metrics_s(x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, pen, floor, tol, area, acc, mx,
-              pressure, contacts, net_force):
+              pressure, contacts, net_force, pair_force):
     return _pair_metrics(SMOOTH, x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, pen, floor, tol, area,
-                         acc, mx, pressure, contacts, net_force)
+                         acc, mx, pressure, contacts, net_force, pair_force)
 
 
 @njit(cache=True)
 def metrics_ns(x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, pen, floor, tol, area, acc, mx,
-              pressure, contacts, net_force):
+              pressure, contacts, net_force, pair_force):
     return _pair_metrics(NONSMOOTH, x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, pen, floor, tol, area,
-                         acc, mx, pressure, contacts, net_force)
+                         acc, mx, pressure, contacts, net_force, pair_force)
 
 
 def pair_metrics(form):
@@ -534,8 +537,9 @@ def pair_metrics(form):
     (n_total,), pair_offsets, pair_j, pair_lambda, xbar, beta, lambda_mode, lam_scale, pen, lam_floor,
     contact_tol (LAMBDA_FORCE only), measures_a (with the
     overlap and sphere measures of the paper's A: the costly part, lens areas), acc (5, NBINS+1), maxima
-    (N_MET_MAX,), pressure (n_local,), contacts int32 (n_local,), net_force (n_local,): |g_i|);
-    returns the number of row entries with lambda > 0."""
+    (N_MET_MAX,), pressure (n_local,), contacts int32 (n_local,), net_force (n_local,): |g_i|,
+    pair_force: each row entry's multiplier (the one pressure sums), shape (pair_offsets[n_local],),
+    or shape (0,) to skip); returns the number of row entries with lambda > 0."""
     return metrics_s if form == "S" else metrics_ns
 
 

@@ -14,7 +14,7 @@ from mpipack.parallel.reduction import Reduction
 from mpipack.parallel.state import BlockState
 
 
-def measure(s, finalize=False, empty=False, overlap_a=True):
+def measure(s, finalize=False, empty=False, overlap_a=True, pair_force=None):
     """One metrics pass (collective): max overlap, KKT residual, complementarity, W, and with
     ``overlap_a`` the paper's A (lens areas of every overlapping pair: the costly part; NaN
     without).
@@ -24,7 +24,9 @@ def measure(s, finalize=False, empty=False, overlap_a=True):
     ``finalize`` (the end of a run), so a check in the middle of a run changes nothing.
     Returns the reduced figures and the per-sphere fields (a dict of arrays of n_local rows):
     pressure mu_i = sum_j lambda_ij, active contacts, and net_force |g_i|, the sphere's row of
-    the KKT residual, g_i = (X_i - Xbar) + sum_j lambda_ij grad_{X_i} phi_ij. ``empty`` runs the
+    the KKT residual, g_i = (X_i - Xbar) + sum_j lambda_ij grad_{X_i} phi_ij. ``pair_force``
+    (float64, one per row entry of the local spheres) receives each entry's multiplier, the one
+    the pressure sums (for the snapshots' contact pairs). ``empty`` runs the
     pass over no particle (it compiles the kernel, and still reduces: collective).
 
     max_net_force = max_i |g_i|, and net_force_share = max_i |g_i|^2 / sum_i |g_i|^2, the part
@@ -57,7 +59,8 @@ def measure(s, finalize=False, empty=False, overlap_a=True):
     n_active = s.metrics_kernel(st.x, 0 if empty else st.n_local, st.diam, st.gid, st.pair_offsets, st.pair_j,
                                 st.pair_lambda, s.xbar, s.method.beta, mode, s.method.kkt_lambda_scale, pen, floor,
                                 s.scene.stop.overlap, overlap_a,
-                                red.acc("met"), red.maxima("met"), pressure, contacts, net_force)
+                                red.acc("met"), red.maxima("met"), pressure, contacts, net_force,
+                                np.empty(0) if pair_force is None else pair_force)
     if mode == kernels.LAMBDA_UPDATE:
         st.lambda_fresh = True
     red.set_count("active", n_active)
