@@ -18,7 +18,8 @@ from mpipack.parallel import neighbors
 rc = cli.main(["run", "--quiet", "--out", sys.argv[1], "--set", "stop.rule=eps", "--set", "stop.eps=0"]
               + sys.argv[2:])
 assert rc == 0, rc
-heavy = sorted(m for m in ("h5py", "matplotlib", "meshio", "scipy") if m in sys.modules)
+# (numba imports scipy itself when it is installed: post-processing's part of it is scipy.spatial)
+heavy = sorted(m for m in ("h5py", "matplotlib", "meshio", "scipy.spatial", "gsd") if m in sys.modules)
 compiled = []
 for prefix, module in (("", kernels), ("fire:", kernels_fire), ("qn:", kernels_qn), ("nb:", neighbors)):
     for name in dir(module):

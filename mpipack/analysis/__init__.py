@@ -1,2 +1,2 @@
-"""Analysis of scenes and results: the stability check before a run (``check``) and
-post-processing of gathered configurations (``post``)."""
+"""Analysis of scenes before a run: the stability check (``check``, ``stability``) and the
+memory footprint (``footprint``). Post-processing of a run's files is ``mpipack.post``."""

@@ -1,4 +1,4 @@
-"""Command line: ``mpipack run | check | vtk | bench | paper | suite | compare | scenes``. Thin
+"""Command line: ``mpipack run | post | export | check | vtk | bench | paper | suite | compare | scenes``. Thin
 dispatch: it parses, and the work is elsewhere (``engine.runner`` for run, ``analysis.check``,
 ``io.vtk``, ``experiments``). Nothing imports this package.
 
@@ -66,6 +66,15 @@ def _parser():
     r.add_argument("--overwrite", action="store_true",
                    help="replace the run that --out holds (without it, a folder holding another run is refused; "
                         "the default folder is numbered instead)")
+    po = sub.add_parser("post", help="measures of a packing from a run's files: density, neighbours, contacts, "
+                                     "pressure, gr, order, all, convergence, compare (PNG + JSON + CSV)")
+    from mpipack.post.commands import add_arguments as post_arguments
+    post_arguments(po)
+    ex = sub.add_parser("export", help="a packing as extended XYZ, LAMMPS dump or data, or GSD (OVITO, LAMMPS, HOOMD)")
+    ex.add_argument("run", help="a run folder, a snapshots.h5 or a checkpoint.h5")
+    ex.add_argument("--format", default="xyz", help="xyz (default), lammps-dump, lammps-data or gsd")
+    ex.add_argument("--iteration", type=int, default=None, help="the snapshot of this iteration (default: the last)")
+    ex.add_argument("--out", default=None, help="the file to write (default RUN/export/packing-<iteration>.<ext>)")
     v = sub.add_parser("vtk", help="convert a run's snapshots to VTK (.vtu per snapshot + .pvd) for ParaView")
     v.add_argument("run_dir", help="a run folder (holding snapshots.h5)")
     b = sub.add_parser("bench", help="throughput and memory benchmark in a packed state")
@@ -151,6 +160,12 @@ def main(argv=None):
     comm = Comm()
     if args.command == "vtk":
         return vtk_command(comm, args)
+    if args.command == "post":
+        from mpipack.post import commands
+        return commands.main(comm, args)
+    if args.command == "export":
+        from mpipack.post import export
+        return export.main(comm, args)
     from mpipack.engine import runner
     request = runner.RunRequest(scene=args.scene, overrides=tuple(args.overrides), seed=args.seed,
                                 out=args.out, dump=args.dump, quiet=args.quiet, profile=args.profile,

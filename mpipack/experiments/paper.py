@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from mpipack.analysis import post
+from mpipack import post
 
 # Paper, Table 1 (N = 7, 20 standard Gaussian starts): T, sigma^2, orders of (A, W - 3)
 EPS_T1 = ((1e-4, 1e-7), (1e-6, 1e-9), (1e-8, 1e-11))
