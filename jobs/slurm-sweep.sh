@@ -2,7 +2,8 @@
 # shellcheck disable=SC2034  # the settings are read by jobs/lib.sh
 # A sweep over seeds (or the values of any --set key): a Slurm array job, one task and one run
 # folder per value, then a collect job that starts when every task has ended with exit 0
-# (--dependency=afterok) and tabulates their summaries in SWEEP_DIR/compare.csv and compare.txt.
+# (--dependency=afterok) and runs `mpipack post compare` over them: SWEEP_DIR/compare.csv,
+# compare.json and the overlaid figures compare-*.png.
 #   bash jobs/slurm-sweep.sh [SCENE] [mpipack run options]   on the login node: submits both
 #   sbatch jobs/slurm-sweep.sh [SCENE] [...]                  the same, from a job of a second
 # Run folders: OUT/<scene>-sweep-<array job id>/<key>-<value>. Submit from the mpipack checkout
@@ -37,37 +38,13 @@ read -ra vals <<< "$values"
 name=$(mp_name "$scene")
 
 if [ -n "${MPIPACK_COLLECT:-}" ]; then   # ---- the collect job
-    # TODO: becomes `mpipack post compare "$MPIPACK_COLLECT"/*/` once that command exists
-    python3 - "$MPIPACK_COLLECT" "$key" "${vals[@]}" <<'PY'
-import csv, json, os, sys
-sweep, key, values = sys.argv[1], sys.argv[2], sys.argv[3:]
-cols = ["seed", "exit_code", "exit_status", "converged", "iterations", "wall_seconds", "W",
-        "max_overlap", "kkt_residual", "density"]
-rows, missing = [], []
-for v in values:
-    path = os.path.join(sweep, f"{key}-{v}", "summary.json")
-    try:
-        with open(path) as f:
-            s = json.load(f)
-    except (OSError, ValueError):
-        missing.append(path)
-        continue
-    rows.append({key: v, **{c: s.get(c) for c in cols}} if key != "seed" else {c: s.get(c) for c in cols})
-head = ([key] if key != "seed" else []) + cols
-with open(os.path.join(sweep, "compare.csv"), "w", newline="") as f:
-    w = csv.DictWriter(f, head)
-    w.writeheader()
-    w.writerows(rows)
-cell = lambda v: f"{v:.6g}" if isinstance(v, float) else str(v)
-table = [head] + [[cell(r[c]) for c in head] for r in rows]
-width = [max(len(r[i]) for r in table) for i in range(len(head))]
-text = "\n".join("  ".join(x.rjust(w) for x, w in zip(r, width)) for r in table)
-text += f"\n{len(rows)} of {len(values)} runs, {sum(r['exit_code'] == 0 for r in rows)} certified\n"
-text += "".join(f"missing: {m}\n" for m in missing)
-with open(os.path.join(sweep, "compare.txt"), "w") as f:
-    f.write(text)
-print(text, end="")
-PY
+    site_env
+    mp_threads
+    runs=()
+    for v in "${vals[@]}"; do runs+=("$MPIPACK_COLLECT/$key-$v"); done
+    # one table (compare.csv, compare.json: each run's outcome and its packing's measures, with
+    # mean and spread) and overlaid figures (compare-density.png, compare-neighbours.png)
+    mpipack post compare "${runs[@]}" --out "$MPIPACK_COLLECT"
     exit $?
 fi
 

@@ -13,6 +13,7 @@ Where Slurm cannot start the Slurm tests are skipped with the reason, unless
 MPIPACK_REQUIRE_SLURM=1 (CI), where that is a failure.
 """
 
+import csv
 import json
 import os
 import re
@@ -150,12 +151,19 @@ def test_sweep_and_collect(slurm, work):
     for seed in (1, 2, 3):
         s = json.loads((sweep / f"seed-{seed}" / "summary.json").read_text())
         assert s["seed"] == seed and s["exit_code"] == 0
-    rows = (sweep / "compare.csv").read_text().splitlines()
-    assert rows[0].split(",") == ["seed", "exit_code", "exit_status", "converged", "iterations",
-                                  "wall_seconds", "W", "max_overlap", "kkt_residual", "density"]
-    assert [r.split(",")[:2] for r in rows[1:]] == [["1", "0"], ["2", "0"], ["3", "0"]]
-    assert "3 of 3 runs, 3 certified" in (sweep / "compare.txt").read_text()
-    assert "3 of 3 runs, 3 certified" in read(sweep / f"collect-{collect}.out")
+    rows = list(csv.reader((sweep / "compare.csv").read_text().splitlines()))
+    head = rows[0]
+    assert head[:10] == ["label", "iteration", "n", "seed", "exit_code", "converged", "iterations",
+                         "wall_seconds", "max_overlap", "kkt_residual"], head
+    assert "density.plateau" in head and "contacts.Z" in head
+    # label, seed, exit_code, converged
+    assert [(r[0], r[3], r[4], r[5]) for r in rows[1:4]] == [("seed-1", "1", "0", "True"), ("seed-2", "2", "0", "True"),
+                                                            ("seed-3", "3", "0", "True")], rows
+    assert [r[0] for r in rows[4:]] == ["mean", "std"]
+    doc = json.loads((sweep / "compare.json").read_text())
+    assert doc["certified"] == 3 and len(doc["runs"]) == 3
+    assert (sweep / "compare-density.png").stat().st_size > 1000
+    assert "3 runs, 3 certified" in read(sweep / f"collect-{collect}.out")
 
 
 @pytest.mark.slow
