@@ -157,6 +157,14 @@ SLOW = {
     "tests/test_watchdog.py::test_a_restart_keeps_the_watchdogs_count",
     "tests/test_watchdog.py::test_aha_s_cycle_exits_3_on_any_rank_count",
     "tests/test_watchdog.py::test_the_watchdog_can_be_turned_off",
+    "tests/test_post.py::test_a_real_run_in_its_known_ranges_on_1_2_3_ranks",
+    "tests/test_post.py::test_fcc_file_gives_the_same_numbers_on_1_2_3_ranks",
+    "tests/test_post.py::test_an_unconverged_snapshot_is_flagged",
+    "tests/test_post.py::test_convergence_and_compare",
+    "tests/test_paraview.py::test_runs_write_the_start_first_the_same_on_1_2_3_ranks_and_a_restart_keeps_it",
+    "tests/test_paraview.py::test_radius_start_and_pairs_the_same_on_1_2_3_ranks",
+    "tests/test_paraview.py::test_view_py_renders_a_picture",
+    "tests/test_paraview.py::test_pvpython_sees_radius_pressure_and_the_contacts_with_lambda",
 }
 # a test that launches mpirun (through these helpers or itself) is an MPI test
 MPI_WORDS = ("mpirun", "mpipack_run", "run_mpipack", "run_cli(", "long_run(", "mpi_script")
