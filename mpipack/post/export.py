@@ -70,7 +70,8 @@ LAMMPS data file (``lammps-data``; ``atom_style sphere`` then ``read_data FILE``
     data file has no per-sphere values beyond these (use the dump for the pressure). A 2D
     packing needs ``dimension 2`` in the input script before ``read_data`` (z = 0 and the z
     bounds straddle 0, as LAMMPS requires); LAMMPS has no 1D: a 1D packing is written as a 2D
-    one on the line y = 0. The box is not periodic: use ``boundary f f f`` (or ``s s s``).
+    one on the line y = 0. The box is not periodic: use ``boundary f f f`` in 3D and
+    ``boundary f f p`` in 2D (LAMMPS wants a periodic z in 2D).
 
 GSD (``gsd``; HOOMD-blue, OVITO, freud; through the ``gsd`` package, HOOMD schema, one frame)::
 
