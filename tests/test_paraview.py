@@ -5,11 +5,12 @@
     writing) stores the same radius and pairs, sorted by (gid_i, gid_j); real runs on 1, 2, 3
     ranks write iteration 0 first, the same on any number of ranks; a restart keeps it;
 (b) pvpython opens both XDMF files and sees radius, pressure, and the contacts with lambda;
-(c) ``xvfb-run -a pvbatch view.py --png x.png`` renders a picture that is not blank (1200 x 900,
-    more than 50 colours), in 1D, 2D, 3D, from the XDMF and the VTK files.
+(c) ``pvbatch view.py --png x.png`` on a virtual display (Xvfb, what ``xvfb-run -a`` gives a
+    user) renders a picture that is not blank (1200 x 900, more than 50 colours), in 1D, 2D,
+    3D, from the XDMF and the VTK files.
 
 This file is also the MPI worker of (a): ``mpirun -n P python test_paraview.py write OUT``.
-ParaView (pvpython, pvbatch) and xvfb-run are required when MPIPACK_REQUIRE_PARAVIEW=1 (CI),
+ParaView (pvpython, pvbatch) and Xvfb are required when MPIPACK_REQUIRE_PARAVIEW=1 (CI),
 else their tests are skipped.
 """
 
@@ -307,19 +308,53 @@ def picture(path):
     return img.shape[0], img.shape[1], len(np.unique(rgb, axis=0))
 
 
-def xvfb_run():
-    """xvfb-run -a, from a display number of this process's own: two xvfb-run -a started at
-    once from the same number (99) can race for it, and one fails."""
-    return [need("xvfb-run", "apt-get install xvfb"), "-a", "-n", str(100 + os.getpid() % 800)]
+@pytest.fixture(scope="module")
+def display():
+    """A virtual X display of this module's own for pvbatch: Xvfb on a free display number,
+    used once it accepts a connection on its socket. (xvfb-run -a failed about one run in three
+    here with "bad X server connection" when the machine was busy.)"""
+    import socket
+    import time
+    xvfb = need("Xvfb", "apt-get install xvfb")
+    first = 100 + os.getpid() % 800
+    for n in range(first, first + 50):
+        sock = f"/tmp/.X11-unix/X{n}"
+        if os.path.exists(f"/tmp/.X{n}-lock") or os.path.exists(sock):
+            continue
+        proc = subprocess.Popen([xvfb, f":{n}", "-screen", "0", "1280x1024x24", "-nolisten", "tcp", "-ac",
+                                 "-noreset"],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline, ready = time.monotonic() + 30, False
+        while not ready and proc.poll() is None and time.monotonic() < deadline:
+            try:
+                with socket.socket(socket.AF_UNIX) as c:
+                    c.connect(sock)
+                ready = True
+            except OSError:
+                time.sleep(0.1)
+        if ready:
+            try:
+                yield f":{n}"
+            finally:
+                proc.terminate()
+                proc.wait(timeout=30)
+            return
+        proc.kill()
+        proc.wait(timeout=30)
+    pytest.fail(f"no Xvfb display could be started on :{first} .. :{first + 49}")
+
+
+def pvbatch_env(display):
+    return {**pv_env(), "DISPLAY": display}
 
 
 @pytest.mark.parametrize("case,flags", [("2d", []), ("3d-empty0", []), ("1d", []), ("2d", ["--vtk"]),
                                         ("3d-empty0", ["--iteration", "0"])])
-def test_view_py_renders_a_picture(written, tmp_path, case, flags):
+def test_view_py_renders_a_picture(written, display, tmp_path, case, flags):
     pvbatch = need("pvbatch", PARAVIEW)
     png = tmp_path / "view.png"
-    proc = subprocess.run(xvfb_run() + [pvbatch, str(written[case] / "view.py"), "--png", str(png)] + flags,
-                          env=pv_env(), capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    proc = subprocess.run([pvbatch, str(written[case] / "view.py"), "--png", str(png)] + flags,
+                          env=pvbatch_env(display), capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert proc.returncode == 0 and png.exists(), describe(proc)
     it = flags[-1] if "--iteration" in flags else str(ITERS[-1])
     assert f"view.py: iteration {it} -> {png}" in proc.stdout, describe(proc)
@@ -327,10 +362,10 @@ def test_view_py_renders_a_picture(written, tmp_path, case, flags):
     assert (width, height) == (1200, 900) and colours > 50, (width, height, colours)
 
 
-def test_view_py_names_a_missing_iteration(written, tmp_path):
+def test_view_py_names_a_missing_iteration(written, display, tmp_path):
     pvbatch = need("pvbatch", PARAVIEW)
-    proc = subprocess.run(xvfb_run() + [pvbatch, str(written["2d"] / "view.py"), "--iteration", "7"],
-                          env=pv_env(), capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    proc = subprocess.run([pvbatch, str(written["2d"] / "view.py"), "--iteration", "7"],
+                          env=pvbatch_env(display), capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert proc.returncode != 0 and "no snapshot of iteration 7" in proc.stderr, describe(proc)
 
 

@@ -244,7 +244,8 @@ def test_an_unconverged_snapshot_is_flagged(run_mpipack, tmp_path):
     assert doc["warnings"]
 
 
-@pytest.mark.parametrize("case", ["nan", "missing", "foreign", "truncated", "iteration", "nothing", "option"])
+@pytest.mark.parametrize("case", ["nan", "missing", "foreign", "truncated", "iteration", "nothing", "option",
+                                  "damaged"])
 def test_unusable_input_is_one_line_and_exit_2(tmp_path, case):
     x = hex_patch(5.0)
     d = np.ones(len(x))
@@ -274,6 +275,22 @@ def test_unusable_input_is_one_line_and_exit_2(tmp_path, case):
     elif case == "option":
         write_snapshot(f, x, d)
         args += ["--factor", "-1"]
+    elif case == "damaged":  # one bit of one diameter, in place: only the checksum sees it
+        write_snapshot(f, x, d)
+        import h5py
+        with h5py.File(f, "r+") as h:
+            ds = h["snapshots"][sorted(h["snapshots"])[-1]]["diameter"]
+            v = ds[()]
+            v[4] = np.nextafter(v[4], 2.0)
+            ds[...] = v
+        from mpipack import read_snapshot
+        from mpipack.io import SnapshotError
+        with pytest.raises(SnapshotError, match="damaged snapshot 7: diameter does not match its checksum"):
+            read_snapshot(str(f))
+        from mpipack.parallel.launcher import mpi_env
+        v = subprocess.run([sys.executable, "-m", "mpipack.cli", "vtk", str(f)], cwd=str(tmp_path), env=mpi_env(),
+                           capture_output=True, text=True, timeout=300)
+        assert v.returncode == 2 and v.stderr.count("\n") == 1 and "damaged snapshot 7" in v.stderr, describe(v)
     p = post_cli(args, tmp_path)
     assert p.returncode == 2, describe(p)
     lines = [ln for ln in p.stderr.splitlines() if ln.strip()]

@@ -11,7 +11,8 @@ Run folder (``--out``, default mpipack-out/<scene name>):
                      end, with the contact pairs (io/snapshots.py)
     snapshots.xmf    the same series for ParaView (File > Open, or pvpython OpenDataFile);
                      snapshots_contacts.xmf: its contact network (the force chains)
-    view.py          a ParaView script showing them: xvfb-run -a pvbatch view.py --png view.png
+    view.py          a ParaView script showing them: pvbatch view.py --png view.png (headless:
+                     under xvfb-run, io/paraview.py)
     checkpoint.h5    the last checkpoint: everything to continue bit for bit (--restart)
     vtk/             after ``mpipack vtk RUN_DIR``: one .vtu per snapshot and snapshots.pvd
 """

@@ -71,6 +71,33 @@ def checksum_rows(rows, first_row):
         return int(np.sum(bits * weight, dtype=np.uint64))
 
 
+def checksum_at(rows, row_index):
+    """``checksum_rows`` of rows that sit at the (scattered) rows ``row_index`` of the dataset."""
+    a = np.ascontiguousarray(rows)
+    width = int(np.prod(a.shape[1:])) if a.ndim > 1 else 1
+    bits = a.reshape(-1).view(np.uint64) if a.dtype.itemsize == 8 else \
+        a.reshape(-1).astype(np.int64).view(np.uint64)
+    index = (np.asarray(row_index, dtype=np.uint64)[:, None] * np.uint64(width)
+             + np.arange(width, dtype=np.uint64)[None, :]).reshape(-1)
+    with np.errstate(over="ignore"):
+        weight = index * _WEIGHT + np.uint64(1)
+        return int(np.sum(bits * weight, dtype=np.uint64))
+
+
+def checksums_attr(checksums):
+    """The JSON text an attribute stores {name: checksum} as (decimal strings: HDF5 attributes
+    and JSON readers may not keep 64-bit integers)."""
+    return json.dumps({k: str(v) for k, v in sorted(checksums.items())})
+
+
+def checksums_from_attr(text):
+    """{name: int} of a ``checksums_attr`` text; None when it cannot be read."""
+    try:
+        return {k: int(v) for k, v in (json.loads(text) if isinstance(text, str) else text).items()}
+    except (ValueError, TypeError, AttributeError):
+        return None
+
+
 def checksum_total(comm, shares):
     """{name: checksum} summed over the ranks' shares ({name: share}), mod 2^64 (collective)."""
     names = sorted(shares)

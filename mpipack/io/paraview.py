@@ -3,9 +3,11 @@
     <folder>/view.py    written by SnapshotWriter (every run that writes snapshots) and by
                         ``mpipack vtk``; rewritten each time (copy it to change it)
 
-Run it with ParaView's own Python, headless (pvbatch needs a display: ``xvfb-run`` gives one)::
+Run it with ParaView's own Python, headless (pvbatch needs a display: ``xvfb-run`` gives one;
+``-noreset``, because an Xvfb that resets when pvbatch's first connection closes refuses the
+next: 1 run in 8 failed without it here, none of 8 with it)::
 
-    xvfb-run -a pvbatch view.py --png view.png [--iteration K] [--vtk]
+    xvfb-run -a -s "-screen 0 1280x1024x24 -noreset" pvbatch view.py --png view.png [--iteration K] [--vtk]
 
 or in the ParaView GUI: View > Python Shell > Run Script. It opens ``<stem>.xmf`` beside it
 (``--vtk``: ``<stem>.pvd`` of ``mpipack vtk``) and shows every sphere to scale (a sphere glyph of
@@ -26,7 +28,7 @@ VIEW_FILE = "view.py"
 
 _SCRIPT = '''"""ParaView view of an mpipack run (written by mpipack beside its snapshots; rewritten).
 
-    xvfb-run -a pvbatch view.py --png view.png [--iteration K] [--vtk]
+    xvfb-run -a -s "-screen 0 1280x1024x24 -noreset" pvbatch view.py --png view.png [--iteration K] [--vtk]
     ParaView GUI: View > Python Shell > Run Script (this file)
 
 Spheres to scale (glyphs of the radius array) coloured by pressure; the contact network (pairs

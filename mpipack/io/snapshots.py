@@ -19,6 +19,9 @@ per-particle dataset is global id i::
         contacts      (N,)     int32     partners with lambda_ij > 0
         net_force     (N,)     float64   |g_i|, g_i = (X_i - Xbar) + sum_j lambda_ij grad_i phi_ij:
                                          the sphere's row of the KKT residual (run snapshots)
+        (attribute checksums: JSON {dataset: checksum of its 64-bit words, weighted by
+         position (io/_h5.checksum_rows)}, "pairs/gid" and "pairs/lambda" included; readers
+         refuse a snapshot whose data do not match: read_snapshot, read_pairs, mpipack post)
         radius        (N,)     float64   d_i / 2, added by the writer (ParaView scales sphere
                                          glyphs by it; the Xdmf3 readers skip XDMF Function
                                          items, so it is stored, not computed in the XDMF)
@@ -345,6 +348,7 @@ class SnapshotWriter:
                 data = {k: _h5.take_rows(v, order) for k, v in fields.items()}
             if radius:
                 data["radius"] = data["diameter"] * 0.5
+            attrs["checksums"] = self._checksums(data, where, pairs)
             err = None
             try:
                 if self._xfer is None:
@@ -359,6 +363,7 @@ class SnapshotWriter:
             if comm.rank == 0:
                 if radius:
                     data["radius"] = data["diameter"] * 0.5
+                attrs["checksums"] = self._checksums(data, 0, pairs, serial=True)
                 try:
                     with _h5.open_file(comm, self.path, "r+", False, locking=False) as f:
                         self._write_group(f, attrs, data, 0, None, pairs)
@@ -383,6 +388,22 @@ class SnapshotWriter:
             raise SnapshotError(err)
         self.last_seconds = time.perf_counter() - t0
         return self.last_seconds
+
+    def _checksums(self, data, where, pairs, serial=False):
+        """The JSON text of every dataset's checksum (``_h5.checksum_rows``; the pairs' too),
+        from the rows this rank writes: a block from row ``where`` or the rows ``where`` lists.
+        Collective unless ``serial`` (rank 0 writes everything)."""
+        shares = {}
+        for k, v in data.items():
+            shares[k] = (_h5.checksum_at(v, where) if isinstance(where, np.ndarray)
+                         else _h5.checksum_rows(v, where))
+        if pairs is not None:
+            start, _, pg, pl = pairs
+            shares["pairs/gid"] = _h5.checksum_rows(pg, start)
+            shares["pairs/lambda"] = _h5.checksum_rows(pl, start)
+        if serial:
+            return _h5.checksums_attr({k: v & ((1 << 64) - 1) for k, v in shares.items()})
+        return _h5.checksums_attr(_h5.checksum_total(self.comm, shares))
 
     def _write_group(self, f, attrs, data, where, xfer, pairs=None):
         """Create the snapshot group and its datasets and write this rank's rows: a block
@@ -452,13 +473,50 @@ def _snapshot_group(f, path, iteration):
     return snaps[name]
 
 
+def damaged(path, attrs, totals):
+    """A one-line message when datasets read do not match the checksums stored with their
+    snapshot (``totals``: {name: checksum of what was read}), else None. Snapshots written before
+    the checksums have none and pass."""
+    stored = attrs.get("checksums")
+    if stored is None:
+        return None
+    want = _h5.checksums_from_attr(stored)
+    bad = sorted(k for k in totals if want is None or k not in want or want[k] != totals[k])
+    if bad:
+        return (f"{path}: damaged snapshot {attrs.get('iteration', '?')}: {', '.join(bad[:3])} "
+                f"do{'es' if len(bad) == 1 else ''} not match {'its' if len(bad) == 1 else 'their'} checksum")
+    return None
+
+
+def check_group(path, group):
+    """Raise SnapshotError (one line) when a dataset of this snapshot group (h5py.Group; its
+    pairs too) does not match its stored checksum (serial; reads every dataset)."""
+    h5py = _h5.h5py()
+    totals = {}
+    for k, d in group.items():
+        if isinstance(d, h5py.Dataset):
+            totals[k] = _h5.checksum_rows(d[()], 0)
+    if "pairs" in group:
+        totals["pairs/gid"] = _h5.checksum_rows(group["pairs/gid"][()], 0)
+        totals["pairs/lambda"] = _h5.checksum_rows(group["pairs/lambda"][()], 0)
+    problem = damaged(path, _h5.read_attrs(group), totals)
+    if problem:
+        raise SnapshotError(problem)
+
+
 def read_snapshot(path, iteration=None):
     """(fields, attrs) of one snapshot, serially (tests, post-processing): iteration None means
-    the last one. fields: {name: (N, ...) array in gid order} (the contact pairs: read_pairs)."""
+    the last one. fields: {name: (N, ...) array in gid order} (the contact pairs: read_pairs).
+    Raises SnapshotError (one line) when a dataset does not match its checksum."""
     h5py = _h5.h5py()
     with h5py.File(path, "r") as f:
         g = _snapshot_group(f, path, iteration)
-        return {k: g[k][()] for k in g if isinstance(g[k], h5py.Dataset)}, _h5.read_attrs(g)
+        fields = {k: g[k][()] for k in g if isinstance(g[k], h5py.Dataset)}
+        attrs = _h5.read_attrs(g)
+    problem = damaged(path, attrs, {k: _h5.checksum_rows(v, 0) & ((1 << 64) - 1) for k, v in fields.items()})
+    if problem:
+        raise SnapshotError(problem)
+    return fields, attrs
 
 
 def read_pairs(path, iteration=None):
@@ -469,7 +527,13 @@ def read_pairs(path, iteration=None):
         g = _snapshot_group(f, path, iteration)
         if "pairs" not in g:
             return None
-        return g["pairs/gid"][()].reshape(-1, 2), g["pairs/lambda"][()]
+        pg, pl = g["pairs/gid"][()].reshape(-1, 2), g["pairs/lambda"][()]
+        attrs = _h5.read_attrs(g)
+    problem = damaged(path, attrs, {"pairs/gid": _h5.checksum_rows(pg, 0) & ((1 << 64) - 1),
+                                    "pairs/lambda": _h5.checksum_rows(pl, 0) & ((1 << 64) - 1)})
+    if problem:
+        raise SnapshotError(problem)
+    return pg, pl
 
 
 def list_snapshots(path):

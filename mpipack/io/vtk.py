@@ -12,7 +12,7 @@
                                                         pair (M, possibly 0), cell data lambda
     <run_dir>/snapshots_contacts.pvd                    their collection (when there are any)
     <run_dir>/view.py                                   the ParaView script (paraview.py):
-                                                        ``xvfb-run -a pvbatch view.py --vtk --png x.png``
+                                                        ``pvbatch view.py --vtk --png x.png``
 
 In ParaView: open the .pvd, add a Glyph filter with Glyph Type Sphere, Radius 1, Scale Array =
 radius, Scale Factor = 1, Glyph Mode "All Points", and colour by pressure (what view.py does).
@@ -28,6 +28,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from . import _h5, paraview as _paraview
+from .snapshots import SnapshotError, check_group
 from .names import PVD_FILE, SNAPSHOT_FILE, VTK_DIR
 
 CONTACTS_PVD_FILE = os.path.splitext(PVD_FILE)[0] + "_contacts.pvd"
@@ -127,12 +128,15 @@ def convert_run(comm, run_dir, out_dir=None):
             import meshio
             with _h5.h5py().File(h5_path, "r") as f:
                 for it, gname, pairs in mine:
+                    check_group(h5_path, f[gname])  # damaged data are refused, not converted
                     mesh = snapshot_mesh(f[gname])
                     meshio.write(os.path.join(out_dir, VTK_DIR, _vtu_name(it)), mesh,
                                  file_format="vtu")
                     if pairs:
                         meshio.write(os.path.join(out_dir, VTK_DIR, _contacts_vtu_name(it)),
                                      contacts_mesh(f[gname]), file_format="vtu")
+    except SnapshotError as e:
+        err = str(e)
     except Exception as e:
         err = f"{h5_path}: VTK conversion failed on rank {comm.rank}: {_h5.one_line(e)}"
     err = _h5.first_error(comm, err)

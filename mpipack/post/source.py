@@ -6,8 +6,8 @@ iteration; default the last) or a ``checkpoint.h5``, each rank reading its block
 On P ranks, rank r reads the rows of gids [N r/P, N (r+1)/P) (collectively through MPI-IO when
 h5py has it and P > 1, else each rank opens the file read-only on its own), so memory stays
 O(N / P). Every problem (no such file, a foreign or truncated file, a missing dataset, a
-snapshot that does not exist, a non-finite position, a diameter <= 0) is a ``PostError`` with a
-one-line message naming the file, raised on every rank.
+snapshot that does not exist, data that do not match their checksum, a non-finite position, a
+diameter <= 0) is a ``PostError`` with a one-line message naming the file, raised on every rank.
 """
 
 import dataclasses
@@ -19,7 +19,7 @@ import numpy as np
 from mpipack.errors import InputError
 from mpipack.io import CHECKPOINT_FILE, SNAPSHOT_FILE, _h5
 from mpipack.io.checkpoint import CheckpointError, read_checkpoint
-from mpipack.io.snapshots import FORMAT as SNAPSHOT_FORMAT, _group_name
+from mpipack.io.snapshots import FORMAT as SNAPSHOT_FORMAT, _group_name, damaged
 
 # per-sphere datasets a snapshot may hold beyond position and diameter
 OPTIONAL_FIELDS = ("pressure", "contacts", "net_force")
@@ -165,11 +165,19 @@ def _read_snapshot(comm, path, iteration):
             g = f[group]
             for name in ("position", "diameter") + tuple(k for k in OPTIONAL_FIELDS if k in head["fields"]):
                 data[name] = _h5.read_rows(g[name], lo, hi, xfer)
+            pairs_from = 0
             if head["pairs"]:
-                pairs = _read_pairs(g["pairs"], lo, hi, xfer)
+                pairs_from, pairs = _read_pairs(g["pairs"], lo, hi, xfer)
     except (OSError, KeyError, ValueError) as e:
         err = f"{path}: snapshot {head['iteration']} cannot be read: {_h5.one_line(e)}"
     err = _h5.first_error(comm, err)
+    if err is not None:
+        raise PostError(err)
+    shares = {k: _h5.checksum_rows(v, lo) for k, v in data.items()}
+    if pairs is not None:
+        shares["pairs/gid"] = _h5.checksum_rows(np.column_stack(pairs[:2]), pairs_from)
+        shares["pairs/lambda"] = _h5.checksum_rows(pairs[2], pairs_from)
+    err = damaged(path, head["attrs"], _h5.checksum_total(comm, shares))
     if err is not None:
         raise PostError(err)
     fields = {k: data[k] for k in OPTIONAL_FIELDS if k in data}
@@ -219,8 +227,9 @@ def _snapshot_header(path, iteration):
 
 
 def _read_pairs(g, lo, hi, xfer):
-    """The pairs whose first gid is in [lo, hi): rows of ``pairs/gid`` are sorted by (gid_i,
-    gid_j), so they are one contiguous range, found by bisection on the first column."""
+    """(first row, (gid_i, gid_j, lambda)) of the pairs whose first gid is in [lo, hi): rows of
+    ``pairs/gid`` are sorted by (gid_i, gid_j), so they are one contiguous range, found by
+    bisection on the first column."""
     gid, lam = g["gid"], g["lambda"]
     m = gid.shape[0]
 
@@ -237,7 +246,7 @@ def _read_pairs(g, lo, hi, xfer):
     a, b = first_at_least(lo), first_at_least(hi)
     pg = _h5.read_rows(gid, a, b, xfer) if m else np.empty((0, 2), np.int64)
     pl = _h5.read_rows(lam, a, b, xfer) if m else np.empty(0)
-    return pg[:, 0].astype(np.int64), pg[:, 1].astype(np.int64), pl.astype(np.float64)
+    return a, (pg[:, 0].astype(np.int64), pg[:, 1].astype(np.int64), pl.astype(np.float64))
 
 
 def _read_checkpoint(comm, path):
