@@ -10,6 +10,7 @@ exit code 2 on every rank.
 """
 
 import copy
+import functools
 import dataclasses
 import math
 import re
@@ -58,7 +59,8 @@ DEFAULTS = {
     "dim": 2,
     "n": 2000,
     "seed": 1,
-    "particles": {"diameter": 1.0, "diameter_max": None},
+    "particles": {"diameter": 1.0, "diameter_max": None, "distribution": "uniform", "spread": None,
+                  "sizes": None, "fractions": None},
     "init": {"kind": "gaussian", "sigma": "auto", "fraction": 0.5, "spacing": 1.0, "jitter": 0.0},
     "method": {"name": "daha", "form": "S", "alpha": None, "beta": None, "gamma": None, "c": None,
                "schedule": None, "l_inner": 10, "eps_inner": 1e-9, "tau": 0.1},
@@ -151,20 +153,95 @@ def _merge(base, over, prefix=""):
             base[key] = val
 
 
+DISTRIBUTIONS = ("uniform", "mono", "normal", "lognormal", "discrete")
+TRUNCATION = 3.0  # normal and lognormal diameters: within 3 standard deviations of the (log-)normal
+
+
 @dataclass(frozen=True)
 class Particles:
+    """The diameters (``particles.distribution``; every draw a function of (seed, gid)):
+
+    uniform    (default) uniform in [diameter, diameter_max]; all ``diameter`` without a max
+    mono       all ``diameter``
+    normal     mean ``diameter``, standard deviation ``spread`` x diameter, truncated to
+               3 standard deviations (spread < 1/3, so that every diameter is positive)
+    lognormal  mean ``diameter`` and standard deviation ``spread`` x diameter of the untruncated
+               law: ln d ~ N(mu, s^2), s^2 = ln(1 + spread^2), mu = ln(diameter) - s^2 / 2,
+               truncated to mu +- 3 s
+    discrete   ``sizes`` in the proportions ``fractions``, in exact counts: the gids
+               [N F_{k-1}, N F_k) (rounded, F the cumulative fractions) have size k
+    """
     diameter: float
     diameter_max: Optional[float]
+    distribution: str = "uniform"
+    spread: Optional[float] = None
+    sizes: Optional[list] = None
+    fractions: Optional[list] = None
 
     @property
     def d_max(self):
         """Largest diameter of the scene."""
-        return self.diameter_max if self.diameter_max is not None else self.diameter
+        return diameter_stats(self)[1]
 
     @property
     def d_mean(self):
-        """The mean of the smallest and largest diameter (the length unit of the schedule's law)."""
-        return 0.5 * (self.diameter + self.d_max)
+        """The length unit of the schedule's law: the mean of the smallest and largest diameter
+        for uniform and mono (as it always was), the distribution's mean for the others."""
+        return diameter_stats(self)[2]
+
+    def mean_radius_power(self, b):
+        """The mean of (d/2)^b over the distribution (the measure of a mean sphere, over
+        that of the unit ball)."""
+        return diameter_stats(self)[3][b - 1]
+
+
+def diameter_stats(p):
+    """(d_min, d_max, d_mean, (mean (d/2)^1, ^2, ^3)) of a ``Particles``."""
+    return _diameter_stats(p.distribution, p.diameter, p.diameter_max, p.spread,
+                           tuple(p.sizes or ()), tuple(p.fractions or ()))
+
+
+@functools.lru_cache(maxsize=64)
+def _diameter_stats(kind, d, d_max, spread, sizes, fractions):
+    if kind in ("uniform", "mono"):
+        hi = d_max if (kind == "uniform" and d_max is not None) else d
+        if hi > d:
+            powers = tuple(((hi / 2) ** (b + 1) - (d / 2) ** (b + 1)) / ((b + 1) * (hi - d) / 2) for b in (1, 2, 3))
+        else:
+            powers = tuple((d / 2) ** b for b in (1, 2, 3))
+        return d, hi, 0.5 * (d + hi), powers
+    if kind == "discrete":
+        total = float(sum(fractions))
+        w = [f / total for f in fractions]
+        mean = sum(wk * sk for wk, sk in zip(w, sizes))
+        return min(sizes), max(sizes), mean, tuple(sum(wk * (sk / 2) ** b for wk, sk in zip(w, sizes)) for b in (1, 2, 3))
+    # quadrature of the truncated (log-)normal law, the same bits in every process: scalar
+    # math.exp and correctly rounded sums (math.fsum), no BLAS (whose dot product splits the sum
+    # over as many threads as it chooses)
+    import numpy as np
+    z = np.linspace(-TRUNCATION, TRUNCATION, 20001)
+    weight = [math.exp(-0.5 * float(v) * float(v)) for v in z]
+    total = math.fsum(weight)
+    diam = [float(v) for v in truncated_diameters(kind, d, spread, z)]
+
+    def mean(values):
+        return math.fsum(w * v for w, v in zip(weight, values)) / total
+
+    return (diam[0], diam[-1], mean(diam), tuple(mean([(v / 2) ** b for v in diam]) for b in (1, 2, 3)))
+
+
+def truncated_diameters(kind, d, spread, z):
+    """The diameters of standard normal values z (|z| <= TRUNCATION) for the normal or lognormal
+    law of mean d and relative spread ``spread`` (numpy arrays in, out)."""
+    import numpy as np
+    if kind == "normal":
+        return d * (1.0 + spread * z)
+    s2 = math.log1p(spread * spread)
+    mu, s = math.log(d) - 0.5 * s2, math.sqrt(s2)
+    # math.exp element by element: numpy's exp takes a SIMD path for some elements and a scalar
+    # one for the rest, as the array's length and alignment fall, and the two can differ in the
+    # last bit; a diameter must not depend on how many spheres a rank draws
+    return np.fromiter((math.exp(mu + s * float(v)) for v in z), dtype=np.float64, count=len(z))
 
 
 @dataclass(frozen=True)
@@ -346,6 +423,7 @@ def validate(scene):
     dmax = _num(scene, "particles.diameter_max", optional=True)
     if dmax is not None and dmax < d:
         raise SceneError(f"key 'particles.diameter_max' must be >= particles.diameter, got {dmax}")
+    _check_distribution(scene)
     init = scene["init"]
     if init["kind"] not in INIT_KINDS:
         raise SceneError(f"key 'init.kind' must be one of {', '.join(INIT_KINDS)}, got {init['kind']!r}")
@@ -440,6 +518,38 @@ def _fixed_parameters(scene):
         m["gamma"] = math.sqrt(alpha * beta)
 
 
+def _check_distribution(scene):
+    p = scene["particles"]
+    kind = p["distribution"]
+    if kind not in DISTRIBUTIONS:
+        raise SceneError(f"key 'particles.distribution' must be one of {', '.join(DISTRIBUTIONS)}, got {kind!r}")
+    used = {"uniform": ("diameter_max",), "mono": (), "normal": ("spread",), "lognormal": ("spread",),
+            "discrete": ("sizes", "fractions")}[kind]
+    for key in ("diameter_max", "spread", "sizes", "fractions"):
+        if p[key] is not None and key not in used:
+            raise SceneError(f"key 'particles.{key}' does not apply to particles.distribution = {kind!r}")
+    if kind in ("normal", "lognormal"):
+        if p["spread"] is None:
+            raise SceneError(f"particles.distribution = {kind!r} needs particles.spread (standard deviation / mean)")
+        spread = _num(scene, "particles.spread")
+        if kind == "normal" and spread >= 1.0 / TRUNCATION:
+            raise SceneError(f"key 'particles.spread' must be below 1/3 for a normal law truncated at 3 "
+                             f"standard deviations (every diameter positive), got {spread}")
+        if kind == "lognormal" and spread > 10:
+            raise SceneError(f"key 'particles.spread' must be at most 10, got {spread}")
+    if kind == "discrete":
+        sizes, fractions = p["sizes"], p["fractions"]
+        for key, v in (("sizes", sizes), ("fractions", fractions)):
+            if not isinstance(v, list) or not v or not all(
+                    isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0 for x in v):
+                raise SceneError(f"particles.distribution = \"discrete\" needs particles.{key}: a list of "
+                                 f"positive numbers, got {v!r}")
+        if len(sizes) != len(fractions):
+            raise SceneError(f"keys 'particles.sizes' and 'particles.fractions' must have the same length, "
+                             f"got {len(sizes)} and {len(fractions)}")
+        p["sizes"], p["fractions"] = [float(x) for x in sizes], [float(x) for x in fractions]
+
+
 # Lengths must stay where the exact sums resolve them: |X|^2 below exactsum.RANGE (~3.9e25,
 # |X| < 6e12) with room for the run to expand, and well above its resolution (2^-78).
 LENGTH_MIN, LENGTH_MAX = 1e-6, 1e9
@@ -448,8 +558,9 @@ LENGTH_MIN, LENGTH_MAX = 1e-6, 1e9
 def _check_length_scales(scene):
     p, init = scene["particles"], scene["init"]
     dim, n = scene["dim"], scene["n"]
-    d_max = p["diameter_max"] if p["diameter_max"] is not None else p["diameter"]
-    lengths = {"particles.diameter": p["diameter"], "particles.diameter_max": d_max,
+    d_min, d_max = _diameter_stats(p["distribution"], p["diameter"], p["diameter_max"], p["spread"],
+                                   tuple(p["sizes"] or ()), tuple(p["fractions"] or ()))[:2]
+    lengths = {"particles.diameter": d_min, "particles.diameter_max": d_max,
                # the packed cloud's extent
                "n and particles.diameter (the packing's size)": d_max * n ** (1.0 / dim)}
     if init["kind"] == "gaussian" and init["sigma"] != "auto":
@@ -476,8 +587,10 @@ def physics_changes(old, new):
             continue
         a, b = old.get(key), new.get(key)
         if isinstance(a, dict) and isinstance(b, dict):
-            out += [f"{key}.{k} ({a.get(k)!r} -> {b.get(k)!r})" for k in sorted(set(a) | set(b))
-                    if a.get(k) != b.get(k)]
+            # a key the old scene did not have yet held its default
+            default = DEFAULTS.get(key, {}) if isinstance(DEFAULTS.get(key), dict) else {}
+            out += [f"{key}.{k} ({a.get(k, default.get(k))!r} -> {b.get(k, default.get(k))!r})"
+                    for k in sorted(set(a) | set(b)) if a.get(k, default.get(k)) != b.get(k, default.get(k))]
         elif a != b:
             out.append(f"{key} ({a!r} -> {b!r})")
     return out

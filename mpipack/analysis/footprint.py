@@ -52,7 +52,7 @@ def start_and_memory(scene, ranks, budget_bytes=None):
     from mpipack.engine import initial as init
     from mpipack.engine.memory import BYTES_PER_ENTRY_PEAK, BYTES_PER_PARTICLE, available_memory_bytes
     p = scene.particles
-    d_mean = 0.5 * (p.diameter + p.d_max)
+    d_mean = p.d_mean
     cut = p.d_max + scene.neighbor.skin * p.d_max  # rows: every pair within d_kl + skin
     overl = pairs_within(scene, d_mean)
     row_pairs = pairs_within(scene, cut)

@@ -283,7 +283,7 @@ def packed_state(scene):
     """The N > 2 estimate: dict of the conditions, each with value, limit, ok and a text."""
     m = scene.method
     b, n, form = scene.dim, scene.n, m.form
-    d = 0.5 * (scene.particles.diameter + scene.particles.d_max)
+    d = scene.particles.d_mean
     g1 = 4.0 * d * d if form == "S" else 1.0
     s_c = centre_row_stiffness(n, b, form, d)
     kap = kappa(n, b)
@@ -452,7 +452,7 @@ def two_spheres(scene):
         dd = scene_diameters(scene, np.arange(2, dtype=np.int64))
         d = float(0.5 * (dd[0] + dd[1]))
     else:
-        d = 0.5 * (scene.particles.diameter + scene.particles.d_max)
+        d = scene.particles.d_mean
     K, q, mom = contact_gains(m.name, m.form, m.alpha, m.beta, m.gamma, m.c, m.tau, d)
     z = cubic_roots(K, q, mom)
     rho = float(np.max(np.abs(z)))
@@ -496,7 +496,7 @@ def cluster_condition(scene, n=None):
     """The linearised scheme at the close-packed cluster of n spheres (default: the scene's N)."""
     m = scene.method
     n = scene.n if n is None else n
-    d = 0.5 * (scene.particles.diameter + scene.particles.d_max)
+    d = scene.particles.d_mean
     P = cluster(n, scene.dim, m.form, d)
     rho = cluster_radius(P, m.name, m.alpha, m.beta, m.gamma, m.c, m.tau)
     what = "the inner loop (linearised constraints) " if m.nested else "the scheme "

@@ -140,12 +140,7 @@ def gaussian_sigma(scene):
 def ball_radius(scene):
     """Radius of the ball whose packing fraction is init.fraction: N spheres of the mean
     volume, sum of sphere measures = fraction * ball measure."""
-    p = scene.particles
-    if p.d_max > p.diameter:  # mean of (d/2)^b for d uniform in [d_min, d_max]
-        b = scene.dim
-        mean_rb = ((p.d_max / 2) ** (b + 1) - (p.diameter / 2) ** (b + 1)) / ((b + 1) * (p.d_max - p.diameter) / 2)
-    else:
-        mean_rb = (p.diameter / 2) ** scene.dim
+    mean_rb = scene.particles.mean_radius_power(scene.dim)
     return (scene.n * mean_rb / scene.init.fraction) ** (1.0 / scene.dim)
 
 
@@ -172,10 +167,33 @@ def positions(scene, gids):
     raise ValueError(f"unknown init kind {init.kind!r}")
 
 
+@njit(cache=True)
+def uniforms(seed, gids, stream):
+    """uniform(seed, gid, stream) of each gid, shape (len(gids),)."""
+    u = np.empty(gids.shape[0])
+    for i in range(gids.shape[0]):
+        u[i] = uniform(seed, gids[i], stream)
+    return u
+
+
 def scene_diameters(scene, gids):
-    """Diameters of the given gids for the scene's particles block."""
+    """Diameters of the given gids for the scene's particles block (``config.Particles``): each
+    a function of (seed, gid), the same on any number of ranks."""
+    from mpipack import config
     p = scene.particles
-    return diameters(scene.seed, gids, float(p.diameter), float(p.d_max))
+    gids = np.asarray(gids, dtype=np.int64)
+    if p.distribution in ("uniform", "mono"):
+        return diameters(scene.seed, gids, float(p.diameter), float(p.d_max))
+    if p.distribution == "discrete":
+        cum = np.cumsum(p.fractions) / float(np.sum(p.fractions))
+        bounds = np.rint(scene.n * cum).astype(np.int64)   # gids [bounds[k-1], bounds[k]) have size k
+        bounds[-1] = scene.n
+        return np.asarray(p.sizes, dtype=np.float64)[np.searchsorted(bounds, gids, side="right")]
+    from scipy.special import ndtr, ndtri
+    # a standard normal truncated to |z| <= TRUNCATION, by the inverse of its distribution function
+    lo, hi = ndtr(-config.TRUNCATION), ndtr(config.TRUNCATION)
+    z = ndtri(lo + (hi - lo) * uniforms(scene.seed, gids, 1000))
+    return config.truncated_diameters(p.distribution, float(p.diameter), float(p.spread), z)
 
 
 # ---- breaking an exact symmetry ---------------------------------------------------------------
