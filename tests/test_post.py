@@ -296,3 +296,19 @@ def test_unusable_input_is_one_line_and_exit_2(tmp_path, case):
     lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("mpipack: error: "), p.stderr
     assert "Traceback" not in p.stderr
+
+
+def test_rattlers_excluded_on_request(tmp_path):
+    """A hexagonal patch and one disc far away: the loose disc is a rattler; --exclude-rattlers
+    leaves it (and any other rattler) out of the neighbour histogram and the order means."""
+    x = np.vstack([hex_patch(8.0), [[40.0, 0.0]]])
+    n = len(x)
+    write_snapshot(tmp_path / "s.h5", x, np.ones(n))
+    a = post.analyse(str(tmp_path / "s.h5"))
+    every = a.neighbours()
+    assert every.summary["spheres"] == n and every.table["spheres"][0] == 1
+    kept = a.neighbours(exclude_rattlers=True)
+    assert kept.table["spheres"][0] == 0 and kept.summary["spheres"] < n
+    _, rattlers = a.contacts()
+    assert n - 1 in rattlers and kept.summary["spheres"] == n - len(rattlers)
+    assert a.order(exclude_rattlers=True).summary["mean_abs_psi6"] == pytest.approx(1.0, abs=1e-12)

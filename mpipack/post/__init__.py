@@ -1,5 +1,5 @@
 """Post-processing of packings: the measures of ``mpipack post`` as functions on arrays, and
-the readers and commands behind the CLI (``source``, ``analyse``, ``commands``, ``export``).
+the readers and commands behind the CLI (``source``, ``analysis``, ``commands``, ``export``).
 
 On arrays (serial; rows in any order, results in the same order)::
 
@@ -80,7 +80,7 @@ def pair_distribution(x, diam, r_max, bins=200, r_bulk=None):
     """(r, g): g(r) at the bins' middles, centres the spheres within r_bulk - r_max of the centre
     of mass (r_bulk default: the outer end of the density plateau)."""
     from . import measures
-    from .analyse import Analysis
+    from .analysis import Analysis
     from .source import Packing
     x = np.ascontiguousarray(x, dtype=np.float64)
     x = x[:, None] if x.ndim == 1 else x
@@ -99,12 +99,12 @@ def pair_distribution(x, diam, r_max, bins=200, r_bulk=None):
 
 
 def analyse(path, comm=None, iteration=None, reach=None):
-    """An ``analyse.Analysis`` of the snapshot ``iteration`` (None: the last) of a run folder, a
+    """An ``analysis.Analysis`` of the snapshot ``iteration`` (None: the last) of a run folder, a
     snapshots.h5 or a checkpoint.h5, on ``comm`` (an mpi4py communicator; default serial).
     reach: the halo width (default 5 largest diameters, enough for every measure's defaults)."""
     from mpipack.parallel.comm import Comm
     from . import source
-    from .analyse import Analysis
+    from .analysis import Analysis
     c = Comm(comm) if comm is not None else Comm.serial()
     pk = source.read(c, path, iteration)
     d_max = float(c.allreduce(np.array([pk.diam.max() if len(pk.diam) else 0.0]), "max")[0])

@@ -2,7 +2,7 @@
 its numbers as JSON and its table as CSV next to it, and a short summary on rank 0.
 
     mpipack post density RUN [--iteration K] [--out DIR]      phi(R) and its plateau
-    mpipack post neighbours RUN [--factor 1.1]                neighbour-count histogram
+    mpipack post neighbours RUN [--factor 1.1] [--exclude-rattlers]   neighbour-count histogram
     mpipack post contacts RUN [--gap 1e-3]                    Z, rattlers, isostaticity
     mpipack post pressure RUN                                 mu_i: histogram, picture, force chains
     mpipack post gr RUN [--r-max R] [--bins K]                g(r) of the interior
@@ -27,7 +27,7 @@ import numpy as np
 from mpipack.errors import EXIT_INPUT, EXIT_OK
 
 from . import figures, source
-from .analyse import Analysis
+from .analysis import Analysis
 
 MEASURES = ("density", "neighbours", "contacts", "pressure", "gr", "order")
 COMMANDS = MEASURES + ("all", "convergence", "compare")
@@ -47,6 +47,9 @@ def add_arguments(parser):
     parser.add_argument("--gap", type=float, default=1e-3, help="contacts: gap below gap * d_ij (default 1e-3)")
     parser.add_argument("--r-max", type=float, default=None, help="g(r) up to this distance (default 5 d, at most half the bulk radius)")
     parser.add_argument("--bins", type=int, default=200, help="g(r) bins (default 200)")
+    parser.add_argument("--exclude-rattlers", action="store_true",
+                        help="neighbours and order: leave out the rattlers (spheres with fewer than b + 1 "
+                             "contacts, found as in contacts) and their pairs")
     parser.add_argument("--quiet", action="store_true", help="no summary lines")
 
 
@@ -131,9 +134,9 @@ def analyse(comm, path, names, args):
         if name == "contacts":
             got[name], extra["rattlers"] = a.contacts(args.gap)
         elif name == "neighbours":
-            got[name] = a.neighbours(args.factor)
+            got[name] = a.neighbours(args.factor, args.exclude_rattlers, args.gap)
         elif name == "order":
-            got[name] = a.order(args.factor)
+            got[name] = a.order(args.factor, args.exclude_rattlers, args.gap)
         elif name == "gr":
             got[name] = a.gr(args.r_max, args.bins)
         elif name == "pressure":

@@ -45,6 +45,7 @@ class Analysis:
         self.r_max = float(comm.allreduce(np.array([np.sqrt(((self.local.x[:self.local.n_own] - self.xbar) ** 2)
                                                             .sum(axis=1)).max() if self.local.n_own else 0.0]), "max")[0])
         self._plateau = None
+        self._alive = None
         self._pairs = {}
         self._contact_pairs = None
 
@@ -124,22 +125,43 @@ class Analysis:
         return Measure("density", summary, {"R": radii, "R_over_d": radii / self.d_mean, "phi": phi},
                        picture={"R": radii, "phi": phi, "d": self.d_mean}, warnings=warn)
 
-    def neighbours(self, factor=1.1):
-        i, _, _ = self.pairs(factor)
-        count = np.bincount(i, minlength=self.local.n_own)[:self.local.n_own]
+    def without_rattlers(self, gap=1e-3):
+        """The owned spheres that are not rattlers (mask), of the multiplier network when the
+        file holds the pairs, else of the gap network; and the global count."""
+        if self._alive is None:
+            _, rattler_gids = self.contacts(gap)
+            alive = ~np.isin(self.local.gid[:self.local.n_own], rattler_gids)
+            self._alive = alive, int(halo.total(self.comm, np.array([alive.sum()]))[0])
+        return self._alive
+
+    def _kept_pairs(self, factor, exclude_rattlers, gap):
+        """(i, j, mask of the owned spheres counted, how many over all ranks)."""
+        i, j, _ = self.pairs(factor)
+        if not exclude_rattlers:
+            return i, j, np.ones(self.local.n_own, dtype=bool), self.n
+        alive, count = self.without_rattlers(gap)
+        alive_all = self.local.with_halo(alive.astype(np.int8)).astype(bool)
+        keep = alive_all[i] & alive_all[j]
+        return i[keep], j[keep], alive, count
+
+    def neighbours(self, factor=1.1, exclude_rattlers=False, gap=1e-3):
+        i, _, alive, n_counted = self._kept_pairs(factor, exclude_rattlers, gap)
+        count = np.bincount(i, minlength=self.local.n_own)[:self.local.n_own][alive]
         hist = measures.count_histogram(self.comm, count)
         k = np.arange(len(hist))
-        mean = float(np.dot(k, hist)) / self.n
-        summary = {"factor": factor, "mean": mean, "max": int(k[hist > 0].max()) if hist.any() else 0}
+        mean = float(np.dot(k, hist)) / n_counted if n_counted else math.nan
+        summary = {"factor": factor, "mean": mean, "max": int(k[hist > 0].max()) if hist.any() else 0,
+                   "spheres": n_counted, "rattlers_excluded": bool(exclude_rattlers)}
         if self.dim == 3:
-            summary["share_8_to_10"] = float(hist[8:11].sum()) / self.n
+            summary["share_8_to_10"] = float(hist[8:11].sum()) / n_counted if n_counted else math.nan
         if self.dim == 2:
-            summary["share_6"] = float(hist[6]) / self.n if len(hist) > 6 else 0.0
+            summary["share_6"] = float(hist[6]) / n_counted if len(hist) > 6 and n_counted else 0.0
         kissing = {1: 2, 2: 6, 3: 12}[self.dim]
         warn = self.quality_warnings()
         if factor <= 1.0 + 1e-12 and summary["max"] > kissing:
             warn.append(f"a sphere has {summary['max']} touching neighbours, more than the kissing number {kissing}")
-        return Measure("neighbours", summary, {"neighbours": k, "spheres": hist, "share": hist / self.n},
+        return Measure("neighbours", summary, {"neighbours": k, "spheres": hist,
+                                               "share": hist / n_counted if n_counted else hist * 0.0},
                        picture={"k": k, "hist": hist}, warnings=warn)
 
     def contacts(self, gap=1e-3):
@@ -232,18 +254,19 @@ class Analysis:
                                        "g": g, "pairs": counts},
                        picture={"r": mid / self.d_mean, "g": g}, warnings=warn)
 
-    def order(self, factor=1.1):
-        i, j, _ = self.pairs(factor)
-        n = self.local.n_own
+    def order(self, factor=1.1, exclude_rattlers=False, gap=1e-3):
+        i, j, alive, n_counted = self._kept_pairs(factor, exclude_rattlers, gap)
+        self_n = n_counted  # means over the spheres counted
         warn = self.quality_warnings()
         if self.dim == 2:
             psi = measures.hexatic(self.local, i, j)
             mod = np.abs(psi)
-            sums = halo.exact_totals(self.comm, [mod, psi.real, psi.imag])
-            hist = halo.total(self.comm, np.histogram(mod, bins=np.linspace(0, 1, 21))[0])
-            summary = {"factor": factor, "mean_abs_psi6": sums[0] / self.n,
-                       "abs_mean_psi6": abs(complex(sums[1], sums[2])) / self.n,
-                       "share_above_0.9": float(hist[18:].sum()) / self.n}
+            sums = halo.exact_totals(self.comm, [mod[alive], psi.real[alive], psi.imag[alive]])
+            hist = halo.total(self.comm, np.histogram(mod[alive], bins=np.linspace(0, 1, 21))[0])
+            summary = {"factor": factor, "mean_abs_psi6": sums[0] / self_n,
+                       "abs_mean_psi6": abs(complex(sums[1], sums[2])) / self_n,
+                       "share_above_0.9": float(hist[18:].sum()) / self_n, "spheres": self_n,
+                       "rattlers_excluded": bool(exclude_rattlers)}
             table = {"abs_psi6_from": np.linspace(0, 0.95, 20), "spheres": hist}
             picture = self.picture_rows({"abs_psi6": mod, "angle": np.angle(psi) / 6.0})
         elif self.dim == 3:
@@ -251,15 +274,16 @@ class Analysis:
             q_all = np.concatenate([q, self.local.refresh(q)])
             q6bar = measures.averaged_q(self.local, i, j, q_all)
             bonds = measures.solid_bonds(self.local, i, j, q_all)
-            crystal = bonds >= measures.SOLID_BONDS
-            s_q6, s_q6bar = halo.exact_totals(self.comm, [q6, q6bar])
+            crystal = (bonds >= measures.SOLID_BONDS)[alive]
+            s_q6, s_q6bar = halo.exact_totals(self.comm, [q6[alive], q6bar[alive]])
             n_crystal = int(halo.total(self.comm, np.array([crystal.sum()]))[0])
             edges = np.linspace(0, 0.7, 36)
-            h1 = halo.total(self.comm, np.histogram(q6, bins=edges)[0])
-            h2 = halo.total(self.comm, np.histogram(q6bar, bins=edges)[0])
-            summary = {"factor": factor, "mean_Q6": s_q6 / self.n, "mean_Q6_averaged": s_q6bar / self.n,
-                       "crystalline_share": n_crystal / self.n, "solid_bond": measures.SOLID_BOND,
-                       "solid_bonds": measures.SOLID_BONDS}
+            h1 = halo.total(self.comm, np.histogram(q6[alive], bins=edges)[0])
+            h2 = halo.total(self.comm, np.histogram(q6bar[alive], bins=edges)[0])
+            summary = {"factor": factor, "mean_Q6": s_q6 / self_n, "mean_Q6_averaged": s_q6bar / self_n,
+                       "crystalline_share": n_crystal / self_n, "solid_bond": measures.SOLID_BOND,
+                       "solid_bonds": measures.SOLID_BONDS, "spheres": self_n,
+                       "rattlers_excluded": bool(exclude_rattlers)}
             table = {"Q6_from": edges[:-1], "spheres_Q6": h1, "spheres_Q6_averaged": h2}
             picture = self.picture_rows({"Q6": q6})
         else:
