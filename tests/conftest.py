@@ -158,6 +158,7 @@ SLOW = {
     "tests/test_watchdog.py::test_aha_s_cycle_exits_3_on_any_rank_count",
     "tests/test_watchdog.py::test_the_watchdog_can_be_turned_off",
     "tests/test_post.py::test_a_real_run_in_its_known_ranges_on_1_2_3_ranks",
+    "tests/test_distributions.py::test_the_same_packing_on_1_2_3_ranks",
     "tests/test_post.py::test_fcc_file_gives_the_same_numbers_on_1_2_3_ranks",
     "tests/test_post.py::test_an_unconverged_snapshot_is_flagged",
     "tests/test_post.py::test_convergence_and_compare",
