@@ -202,8 +202,9 @@ def test_vtk_command(tmp_path):
                        cwd=str(tmp_path), env=mpi_env(), capture_output=True, text=True, timeout=300)
     assert v.returncode == 0, describe(v)
     import meshio
-    vtus = sorted((out / "vtk").glob("*.vtu"))
-    assert len(vtus) == 2  # iterations 20 and 40 (the final state is iteration 40)
+    vtus = sorted((out / "vtk").glob("snapshot_*.vtu"))
+    assert len(vtus) == 3  # iterations 0, 20 and 40 (the start, and the final state is iteration 40)
+    assert len(sorted((out / "vtk").glob("contacts_*.vtu"))) == 3  # each snapshot's contact network
     mesh = meshio.read(vtus[-1])
     assert mesh.points.shape == (100, 3)
     assert set(mesh.point_data) >= {"diameter", "pressure", "contacts", "net_force"}
