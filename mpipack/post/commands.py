@@ -122,7 +122,8 @@ def _prepare_out(comm, out):
 
 
 def analyse(comm, path, names, args):
-    """(packing, {name: Measure}) of the measures ``names`` of the packing at ``path``."""
+    """(packing, its Analysis, {name: Measure}, extras: the rattlers' gids, the force chains)
+    of the measures ``names`` of the packing at ``path``."""
     pk = source.read(comm, path, args.iteration)
     d_max = float(comm.allreduce(np.array([pk.diam.max() if len(pk.diam) else 0.0]), "max")[0])
     width = max(args.factor, 1.0 + args.gap) * d_max  # the halo: every neighbour of an owned sphere
