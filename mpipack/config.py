@@ -192,42 +192,54 @@ class Particles:
     def mean_radius_power(self, b):
         """The mean of (d/2)^b over the distribution (the measure of a mean sphere, over
         that of the unit ball)."""
-        return diameter_stats(self)[3][b - 1]
+        return _radius_powers(self.distribution, self.diameter, self.diameter_max, self.spread,
+                              tuple(self.sizes or ()), tuple(self.fractions or ()))[b - 1]
 
 
 def diameter_stats(p):
-    """(d_min, d_max, d_mean, (mean (d/2)^1, ^2, ^3)) of a ``Particles``."""
+    """(d_min, d_max, d_mean) of a ``Particles``."""
     return _diameter_stats(p.distribution, p.diameter, p.diameter_max, p.spread,
                            tuple(p.sizes or ()), tuple(p.fractions or ()))
+
+
+def _laws(kind, d, d_max, spread, sizes, fractions):
+    """(diameters, weights) that describe the law: exact for mono and discrete; for uniform
+    None (closed forms); for normal and lognormal a quadrature of the truncated law, the same
+    bits in every process: scalar math.exp, no BLAS (whose dot product splits a sum over as
+    many threads as it chooses), sums by math.fsum."""
+    if kind == "discrete":
+        return list(sizes), list(fractions)
+    if kind in ("uniform", "mono"):
+        return None
+    import numpy as np
+    z = np.linspace(-TRUNCATION, TRUNCATION, 20001)
+    return ([float(v) for v in truncated_diameters(kind, d, spread, z)],
+            [math.exp(-0.5 * float(v) * float(v)) for v in z])
+
+
+def _weighted_mean(values, weights):
+    return math.fsum(w * v for w, v in zip(weights, values)) / math.fsum(weights)
 
 
 @functools.lru_cache(maxsize=64)
 def _diameter_stats(kind, d, d_max, spread, sizes, fractions):
     if kind in ("uniform", "mono"):
         hi = d_max if (kind == "uniform" and d_max is not None) else d
-        if hi > d:
-            powers = tuple(((hi / 2) ** (b + 1) - (d / 2) ** (b + 1)) / ((b + 1) * (hi - d) / 2) for b in (1, 2, 3))
-        else:
-            powers = tuple((d / 2) ** b for b in (1, 2, 3))
-        return d, hi, 0.5 * (d + hi), powers
-    if kind == "discrete":
-        total = float(sum(fractions))
-        w = [f / total for f in fractions]
-        mean = sum(wk * sk for wk, sk in zip(w, sizes))
-        return min(sizes), max(sizes), mean, tuple(sum(wk * (sk / 2) ** b for wk, sk in zip(w, sizes)) for b in (1, 2, 3))
-    # quadrature of the truncated (log-)normal law, the same bits in every process: scalar
-    # math.exp and correctly rounded sums (math.fsum), no BLAS (whose dot product splits the sum
-    # over as many threads as it chooses)
-    import numpy as np
-    z = np.linspace(-TRUNCATION, TRUNCATION, 20001)
-    weight = [math.exp(-0.5 * float(v) * float(v)) for v in z]
-    total = math.fsum(weight)
-    diam = [float(v) for v in truncated_diameters(kind, d, spread, z)]
+        return d, hi, 0.5 * (d + hi)
+    diam, weight = _laws(kind, d, d_max, spread, sizes, fractions)
+    return min(diam), max(diam), _weighted_mean(diam, weight)
 
-    def mean(values):
-        return math.fsum(w * v for w, v in zip(weight, values)) / total
 
-    return (diam[0], diam[-1], mean(diam), tuple(mean([(v / 2) ** b for v in diam]) for b in (1, 2, 3)))
+@functools.lru_cache(maxsize=64)
+def _radius_powers(kind, d, d_max, spread, sizes, fractions):
+    """(mean (d/2)^1, ^2, ^3) of the law."""
+    if kind in ("uniform", "mono"):
+        lo, hi, _ = _diameter_stats(kind, d, d_max, spread, sizes, fractions)
+        if hi > lo:
+            return tuple(((hi / 2) ** (b + 1) - (lo / 2) ** (b + 1)) / ((b + 1) * (hi - lo) / 2) for b in (1, 2, 3))
+        return tuple((lo / 2) ** b for b in (1, 2, 3))
+    diam, weight = _laws(kind, d, d_max, spread, sizes, fractions)
+    return tuple(_weighted_mean([(v / 2) ** b for v in diam], weight) for b in (1, 2, 3))
 
 
 def truncated_diameters(kind, d, spread, z):
