@@ -62,13 +62,7 @@ def checksum_rows(rows, first_row):
     file written on P ranks is checked on any number; a changed, swapped or overwritten element
     changes it (unless another change cancels it exactly)."""
     a = np.ascontiguousarray(rows)
-    width = int(np.prod(a.shape[1:])) if a.ndim > 1 else 1
-    bits = a.reshape(-1).view(np.uint64) if a.dtype.itemsize == 8 else \
-        a.reshape(-1).astype(np.int64).view(np.uint64)
-    index = np.arange(first_row * width, first_row * width + bits.size, dtype=np.uint64)
-    with np.errstate(over="ignore"):
-        weight = index * _WEIGHT + np.uint64(1)
-        return int(np.sum(bits * weight, dtype=np.uint64))
+    return checksum_at(a, np.arange(first_row, first_row + len(a), dtype=np.int64))
 
 
 def checksum_at(rows, row_index):

@@ -402,7 +402,7 @@ class SnapshotWriter:
             shares["pairs/gid"] = _h5.checksum_rows(pg, start)
             shares["pairs/lambda"] = _h5.checksum_rows(pl, start)
         if serial:
-            return _h5.checksums_attr({k: v & ((1 << 64) - 1) for k, v in shares.items()})
+            return _h5.checksums_attr(shares)
         return _h5.checksums_attr(_h5.checksum_total(self.comm, shares))
 
     def _write_group(self, f, attrs, data, where, xfer, pairs=None):
@@ -513,7 +513,7 @@ def read_snapshot(path, iteration=None):
         g = _snapshot_group(f, path, iteration)
         fields = {k: g[k][()] for k in g if isinstance(g[k], h5py.Dataset)}
         attrs = _h5.read_attrs(g)
-    problem = damaged(path, attrs, {k: _h5.checksum_rows(v, 0) & ((1 << 64) - 1) for k, v in fields.items()})
+    problem = damaged(path, attrs, {k: _h5.checksum_rows(v, 0) for k, v in fields.items()})
     if problem:
         raise SnapshotError(problem)
     return fields, attrs
@@ -529,8 +529,8 @@ def read_pairs(path, iteration=None):
             return None
         pg, pl = g["pairs/gid"][()].reshape(-1, 2), g["pairs/lambda"][()]
         attrs = _h5.read_attrs(g)
-    problem = damaged(path, attrs, {"pairs/gid": _h5.checksum_rows(pg, 0) & ((1 << 64) - 1),
-                                    "pairs/lambda": _h5.checksum_rows(pl, 0) & ((1 << 64) - 1)})
+    problem = damaged(path, attrs, {"pairs/gid": _h5.checksum_rows(pg, 0),
+                                    "pairs/lambda": _h5.checksum_rows(pl, 0)})
     if problem:
         raise SnapshotError(problem)
     return pg, pl

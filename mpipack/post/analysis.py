@@ -45,7 +45,7 @@ class Analysis:
         self.r_max = float(comm.allreduce(np.array([np.sqrt(((self.local.x[:self.local.n_own] - self.xbar) ** 2)
                                                             .sum(axis=1)).max() if self.local.n_own else 0.0]), "max")[0])
         self._plateau = None
-        self._alive = None
+        self._contacts = {}
         self._pairs = {}
         self._contact_pairs = None
 
@@ -128,11 +128,9 @@ class Analysis:
     def without_rattlers(self, gap=1e-3):
         """The owned spheres that are not rattlers (mask), of the multiplier network when the
         file holds the pairs, else of the gap network; and the global count."""
-        if self._alive is None:
-            _, rattler_gids = self.contacts(gap)
-            alive = ~np.isin(self.local.gid[:self.local.n_own], rattler_gids)
-            self._alive = alive, int(halo.total(self.comm, np.array([alive.sum()]))[0])
-        return self._alive
+        _, rattler_gids = self.contacts(gap)
+        alive = ~np.isin(self.local.gid[:self.local.n_own], rattler_gids)
+        return alive, int(halo.total(self.comm, np.array([alive.sum()]))[0])
 
     def _kept_pairs(self, factor, exclude_rattlers, gap):
         """(i, j, mask of the owned spheres counted, how many over all ranks)."""
@@ -168,7 +166,12 @@ class Analysis:
         """The network of pairs with lambda > 0 (when the file holds the pairs; else the
         per-sphere counts of the snapshot) and the network of pairs with gap < ``gap`` d_ij.
         Returns (Measure, gids of the rattlers of the multiplier network when there is one, else
-        of the gap network)."""
+        of the gap network); computed once per gap (``without_rattlers`` asks for it too)."""
+        if gap not in self._contacts:
+            self._contacts[gap] = self._measure_contacts(gap)
+        return self._contacts[gap]
+
+    def _measure_contacts(self, gap):
         i, j, _ = self.pairs(1.0 + gap)
         by_gap, alive = measures.contact_summary(self.comm, self.local, i, j, self.dim, self.n)
         summary = {"gap": gap, "by_gap": {k: v for k, v in by_gap.items() if k != "histogram"}}

@@ -216,12 +216,7 @@ def _snapshot_header(path, iteration):
         fields = [k for k in OPTIONAL_FIELDS if k in g and g[k].shape == (n,)]
         pairs = "pairs" in g and "gid" in g["pairs"] and "lambda" in g["pairs"]
         attrs = _h5.read_attrs(g)
-        scene = _h5.read_attrs(f).get("scene", {})
-        if isinstance(scene, str):
-            try:
-                scene = json.loads(scene)
-            except ValueError:
-                scene = {}
+        scene = _scene(_h5.read_attrs(f))
     return {"n": n, "dim": dim, "group": f"/snapshots/{name}", "fields": fields, "pairs": pairs,
             "iteration": int(attrs.get("iteration", int(name))), "attrs": attrs, "scene": scene}
 
@@ -249,6 +244,17 @@ def _read_pairs(g, lo, hi, xfer):
     return a, (pg[:, 0].astype(np.int64), pg[:, 1].astype(np.int64), pl.astype(np.float64))
 
 
+def _scene(file_attrs):
+    """The run's scene (a dict) from a file's attributes, {} when it records none readable."""
+    scene = file_attrs.get("scene", {})
+    if isinstance(scene, str):
+        try:
+            scene = json.loads(scene)
+        except ValueError:
+            return {}
+    return scene if isinstance(scene, dict) else {}
+
+
 def _read_checkpoint(comm, path):
     try:
         block, scalars, attrs = read_checkpoint(comm, path)
@@ -260,12 +266,7 @@ def _read_checkpoint(comm, path):
     owner = np.repeat(gid, block["hist_count"])
     partner = block["hist_gid"].astype(np.int64)
     keep = (owner < partner) & (block["hist_lambda"] > 0)
-    scene = attrs.get("scene", {})
-    if isinstance(scene, str):
-        try:
-            scene = json.loads(scene)
-        except ValueError:
-            scene = {}
+    scene = _scene(attrs)
     return Packing(n=n, dim=dim, gid=gid, x=np.ascontiguousarray(block["x"], dtype=np.float64),
                    diam=np.ascontiguousarray(block["diam"], dtype=np.float64), fields={},
                    pairs=(owner[keep], partner[keep], block["hist_lambda"][keep].astype(np.float64)),
