@@ -69,6 +69,9 @@ DEFAULTS = {
     "neighbor": {"skin": 0.3, "rebalance": 1.2, "max_pair_gib": None},
     "output": {"progress_every": 0.5, "dir": None, "metrics_every": 0, "w_optimum": None,
                "snapshots": True, "snapshot_every": 0, "checkpoint_every": 0},
+    "container": {"kind": "none", "lo": None, "hi": None, "centre": None, "radius": None,
+                  "height": None},
+    "potential": {"kind": "centre", "point": None},
 }
 
 
@@ -315,8 +318,74 @@ class Output:
     checkpoint_every: int
 
 
+CONTAINERS = ("none", "box", "cylinder", "sphere")
+# the densest packing fraction of equal spheres in b dimensions (1D a chain, 2D hexagonal,
+# 3D face-centred cubic): no container can hold more of the spheres' measure than this
+DENSEST = {1: 1.0, 2: math.pi / math.sqrt(12.0), 3: math.pi / math.sqrt(18.0)}
+
+
+@dataclass(frozen=True)
+class Container:
+    """Walls that hold every sphere inside (``container.kind``), each a constraint per sphere
+    with its own multiplier (``kernels.walls``):
+
+    none      no wall (default: the paper's free cluster)
+    box       ``lo`` <= X - d/2, X + d/2 <= ``hi`` along every axis (lists of b numbers)
+    cylinder  3D: |X_xy - centre_xy| <= ``radius`` - d/2, a floor at centre_z and, with
+              ``height``, a lid at centre_z + height
+    sphere    |X - centre| <= ``radius`` - d/2 (a disc in 2D, an interval in 1D)
+    """
+    kind: str = "none"
+    lo: Optional[list] = None
+    hi: Optional[list] = None
+    centre: Optional[list] = None
+    radius: Optional[float] = None
+    height: Optional[float] = None
+
+    @property
+    def active(self):
+        return self.kind != "none"
+
+    def volume(self, dim):
+        """The container's measure (length^b); inf for an open cylinder."""
+        if self.kind == "box":
+            return math.prod(h - l for l, h in zip(self.lo, self.hi))
+        if self.kind == "cylinder":
+            return math.pi * self.radius ** 2 * self.height if self.height is not None else math.inf
+        if self.kind == "sphere":
+            return {1: 2.0 * self.radius, 2: math.pi * self.radius ** 2,
+                    3: 4.0 / 3.0 * math.pi * self.radius ** 3}[dim]
+        return math.inf
+
+    def middle(self, dim):
+        """A point well inside: the box's centre, the cylinder's axis at its middle (an open one:
+        a radius above the floor), the sphere's centre."""
+        if self.kind == "box":
+            return [0.5 * (l + h) for l, h in zip(self.lo, self.hi)]
+        if self.kind == "cylinder":
+            c = list(self.centre)
+            c[2] += 0.5 * self.height if self.height is not None else self.radius
+            return c
+        return list(self.centre)
+
+
+POTENTIALS = ("centre", "point")
+
+
+@dataclass(frozen=True)
+class Potential:
+    """What W pulls towards (``potential.kind``):
+
+    centre   the paper's W = 1/(2N) sum_{i<j} |X_i - X_j|^2 = 1/2 sum_i |X_i - Xbar|^2: the
+             centre of mass (default)
+    point    W = 1/2 sum_i |X_i - P|^2, P = ``point`` (a list of b numbers): a fixed point
+    """
+    kind: str = "centre"
+    point: Optional[list] = None
+
+
 _SECTIONS = {"particles": Particles, "init": Init, "method": Method, "stop": Stop,
-             "neighbor": Neighbor, "output": Output}
+             "neighbor": Neighbor, "output": Output, "container": Container, "potential": Potential}
 
 
 @dataclass(frozen=True)
@@ -332,6 +401,8 @@ class Scene:
     stop: Stop
     neighbor: Neighbor
     output: Output
+    container: Container = Container()
+    potential: Potential = Potential()
 
     def as_dict(self):
         return dataclasses.asdict(self)
@@ -518,7 +589,88 @@ def validate(scene):
     _num(scene, "output.w_optimum", positive=False, optional=True)
     if scene["output"]["dir"] is not None and not isinstance(scene["output"]["dir"], str):
         raise SceneError("key 'output.dir' must be a string")
+    _check_container(scene)
+    _check_potential(scene)
     return scene
+
+
+def _check_potential(scene):
+    pot, dim = scene["potential"], scene["dim"]
+    if pot["kind"] not in POTENTIALS:
+        raise SceneError(f"key 'potential.kind' must be one of {', '.join(POTENTIALS)}, got {pot['kind']!r}")
+    if pot["kind"] == "centre":
+        if pot["point"] is not None:
+            raise SceneError("key 'potential.point' does not apply to potential.kind = \"centre\"")
+        return
+    if scene["method"]["name"] in ("nap", "nav"):
+        raise SceneError(f"key 'potential.kind': method {scene['method']['name']!r} (nested) takes only "
+                         f"the centre potential yet")
+    v = pot["point"]
+    if not isinstance(v, list) or len(v) != dim or not all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v):
+        raise SceneError(f"potential.kind = \"point\" needs potential.point: a list of {dim} finite numbers, got {v!r}")
+    pot["point"] = [float(x) for x in v]
+
+
+def _vector(scene, key, dim):
+    v = scene["container"][key]
+    if not isinstance(v, list) or len(v) != dim or not all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v):
+        raise SceneError(f"key 'container.{key}' must be a list of {dim} finite numbers (one per axis), got {v!r}")
+    scene["container"][key] = [float(x) for x in v]
+    return scene["container"][key]
+
+
+def _check_container(scene):
+    c, dim, n = scene["container"], scene["dim"], scene["n"]
+    kind = c["kind"]
+    if kind not in CONTAINERS:
+        raise SceneError(f"key 'container.kind' must be one of {', '.join(CONTAINERS)}, got {kind!r}")
+    used = {"none": (), "box": ("lo", "hi"), "cylinder": ("centre", "radius", "height"),
+            "sphere": ("centre", "radius")}[kind]
+    for key in ("lo", "hi", "centre", "radius", "height"):
+        if c[key] is not None and key not in used:
+            raise SceneError(f"key 'container.{key}' does not apply to container.kind = {kind!r}")
+        if c[key] is None and key in used and key != "height":
+            raise SceneError(f"container.kind = {kind!r} needs container.{key}")
+    if kind == "none":
+        return
+    if scene["method"]["name"] in ("nap", "nav"):
+        raise SceneError(f"key 'container.kind': walls are constraints of DAHA, AHA and the fire-al "
+                         f"schedule; method {scene['method']['name']!r} (nested) does not take them yet")
+    p = scene["particles"]
+    d_min, d_max = _diameter_stats(p["distribution"], p["diameter"], p["diameter_max"], p["spread"],
+                                   tuple(p["sizes"] or ()), tuple(p["fractions"] or ()))[:2]
+    if kind == "box":
+        lo, hi = _vector(scene, "lo", dim), _vector(scene, "hi", dim)
+        for k in range(dim):
+            if hi[k] - lo[k] < d_max:
+                raise SceneError(f"keys 'container.lo' and 'container.hi': the box is {hi[k] - lo[k]:g} wide "
+                                 f"along axis {k}, narrower than the largest diameter {d_max:g}")
+    else:
+        _vector(scene, "centre", dim)
+        if kind == "cylinder" and dim != 3:
+            raise SceneError(f"container.kind = \"cylinder\" is a 3D container (its axis along z); in {dim}D "
+                             f"use \"box\" or \"sphere\"")
+        radius = _num(scene, "container.radius")
+        if 2.0 * radius < d_max:
+            raise SceneError(f"key 'container.radius' = {radius:g} holds no sphere of the largest diameter {d_max:g}")
+        if kind == "cylinder" and _num(scene, "container.height", optional=True) is not None \
+                and c["height"] < d_max:
+            raise SceneError(f"key 'container.height' = {c['height']:g} is lower than the largest diameter {d_max:g}")
+    # the spheres' measure against what the container can hold at the densest packing
+    spheres = n * _ball_measure(dim) * _radius_powers(p["distribution"], p["diameter"], p["diameter_max"],
+                                                      p["spread"], tuple(p["sizes"] or ()),
+                                                      tuple(p["fractions"] or ()))[dim - 1]
+    room = DENSEST[dim] * Container(**c).volume(dim)
+    if spheres > room:
+        raise SceneError(f"the container is too small: {n} spheres fill {spheres:.4g} (length^{dim}), more than "
+                         f"the {room:.4g} it holds at the densest packing ({DENSEST[dim]:.4f} of its "
+                         f"{Container(**c).volume(dim):.4g}); enlarge it or use fewer spheres")
+
+
+def _ball_measure(dim):
+    return {1: 2.0, 2: math.pi, 3: 4.0 / 3.0 * math.pi}[dim]
 
 
 def _fixed_parameters(scene):
@@ -598,6 +750,8 @@ def physics_changes(old, new):
         if key in RESTART_MAY_CHANGE:
             continue
         a, b = old.get(key), new.get(key)
+        if isinstance(DEFAULTS.get(key), dict):  # a section the old scene did not have yet held defaults
+            a, b = a if a is not None else {}, b if b is not None else {}
         if isinstance(a, dict) and isinstance(b, dict):
             # a key the old scene did not have yet held its default
             default = DEFAULTS.get(key, {}) if isinstance(DEFAULTS.get(key), dict) else {}

@@ -120,6 +120,8 @@ def step_each(s, n, fn):
 # 2026-11-27): the fast lane, pytest -m "not slow", leaves them out (about 3 minutes instead of
 # 13); CI runs everything. The Slurm tests mark themselves (tests/test_jobs.py).
 SLOW = {
+    "tests/test_container.py::test_the_same_packing_on_1_2_3_ranks",
+    "tests/test_container.py::test_restart_onto_another_rank_count",
     "tests/test_api.py::test_keyword_overrides_and_options",
     "tests/test_api.py::test_the_readme_example_runs_on_any_rank_count",
     "tests/test_check.py::test_two_sphere_verdict_against_runs",

@@ -61,3 +61,9 @@ def brute_force_figures(d):
     ov = (dij - r) / dij
     np.fill_diagonal(ov, -np.inf)
     return w, max(float(ov.max()), 0.0)
+
+
+def no_walls(n_local):
+    """The walls arguments of a kernel without a container (``kernels.walls``): no wall, and
+    n_local spheres with no wall multiplier."""
+    return np.zeros((0, 8)), np.zeros((n_local, 0))

@@ -280,3 +280,20 @@ def equalise_radially(x, n_local, centre, r_max, counts, radius, dim):
     f = cdf[k] + (pos - k) * (cdf[k + 1] - cdf[k])
     scale = np.where(r > 0, radius * f ** (1.0 / dim) / np.where(r > 0, r, 1.0), 1.0)
     x[:n_local] = centre + d * scale[:, None]
+
+
+def contain(scene, x, diam):
+    """Start positions x (m, b) placed where the scene wants them, in place: a start drawn about
+    the origin (gaussian, ball, lattice) moved to the container's middle or, without one, to
+    the point W pulls to (potential.kind = "point"); then every centre projected inside the
+    container by its radius (``kernels.walls.inside``): no sphere begins beyond a wall. Per
+    sphere, so the same on any rank count. The paper's scenes are returned unchanged."""
+    c, drawn = scene.container, scene.init.kind != "file"
+    if not c.active:
+        if drawn and scene.potential.kind == "point":
+            x += np.asarray(scene.potential.point, dtype=np.float64)[None, :]
+        return x
+    from mpipack.kernels import walls
+    if drawn:
+        x += np.asarray(c.middle(scene.dim), dtype=np.float64)[None, :]
+    return walls.inside(x, diam, walls.walls_of(c, scene.dim))

@@ -183,6 +183,8 @@ class Checkpoints:
             block["x_lin"] = b.x_lin
         if b.qn is not None:
             block["qn"] = b.qn
+        if b.wall_lambda is not None:
+            block["wall_lambda"] = b.wall_lambda
         scalars = {"iteration": b.iteration, "lambda_fresh": b.lambda_fresh,
                    "counters": b.counters, "extra": b.extra}
         seconds = write_checkpoint(self.comm, self.path, self.scene.n, self.scene.dim, block,
@@ -214,9 +216,11 @@ def state_problem(block, scalars, n):
     are not finite, diameters that are not positive, partner gids outside [0, N) or a sphere its
     own partner, multipliers that are negative or not finite, scalars missing or of the wrong
     kind. A run from such a state would fail far from its cause, or silently compute nonsense."""
-    for k in ("x", "x_prev", "x_lin", "qn"):
+    for k in ("x", "x_prev", "x_lin", "qn", "wall_lambda"):
         if block.get(k) is not None and not np.all(np.isfinite(block[k])):
             return f"particles/{k} holds values that are not finite"
+    if block.get("wall_lambda") is not None and block["wall_lambda"].size and block["wall_lambda"].min() < 0:
+        return "particles/wall_lambda holds negative multipliers"
     d = block["diam"]
     if not np.all(np.isfinite(d)) or np.any(d <= 0):
         return "particles/diam holds diameters that are not positive"
@@ -263,6 +267,6 @@ def read_state(comm, path):
         x=block["x"], x_prev=block["x_prev"], diam=block["diam"],
         hist_count=block["hist_count"], hist_gid=block["hist_gid"],
         hist_lambda=block["hist_lambda"], x_lin=block.get("x_lin"), qn=block.get("qn"),
-        iteration=int(scalars["iteration"]), lambda_fresh=bool(scalars["lambda_fresh"]),
+        wall_lambda=block.get("wall_lambda"), iteration=int(scalars["iteration"]), lambda_fresh=bool(scalars["lambda_fresh"]),
         counters=dict(scalars.get("counters", {})), extra=dict(scalars.get("extra", {})))
     return state, scene, attrs

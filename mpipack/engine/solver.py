@@ -32,6 +32,7 @@ from mpipack.engine import rebuild as rebuild_mod
 from mpipack.engine.timers import FORWARD, REDUCE, STEP, PhaseTimers
 from mpipack.errors import NumericalError, TooDenseError
 from mpipack.kernels import daha as kernels
+from mpipack.kernels import walls
 from mpipack.methods import for_scene
 from mpipack.parallel import comm as comm_mod
 from mpipack.parallel import domain, exactsum, neighbors
@@ -81,9 +82,15 @@ class Solver:
         self.skin = float(scene.neighbor.skin) * self.d_max
         self.r_ghost = self.d_max + self.skin
         self.state = State(self.dim, self.n)
+        self.state.walls = walls.walls_of(scene.container, self.dim)
         self.partition = domain.Partition.whole_space(self.dim)
         self.plan = comm_mod.GhostPlan.empty()
-        self.xbar = np.zeros(self.dim)
+        self.xbar = np.zeros(self.dim)  # the point W pulls to: Xbar, or potential.point
+        # potential.kind = "point": W = 1/2 sum |X_i - P|^2 needs sum X^n, which the pass that
+        # moves X^n to X^{n+1} does not reduce: kept from the pass before (None: not known)
+        self.point = (np.array(scene.potential.point, dtype=np.float64)
+                      if scene.potential.kind == "point" else None)
+        self.sum_x = None
         self.counters = {"rebuilds": 0, "rebalances": 0, "far_ghosts": 0, "max_imbalance": 1.0,
                          "inner_iterations": 0}
         self.timers = timers or PhaseTimers()
@@ -134,8 +141,9 @@ class Solver:
         extra = self.method.extra_fields
         if source is None:
             gids = np.arange(N * r // P, N * (r + 1) // P, dtype=np.int64)
-            x = init.positions(self.scene, gids)
-            local = {"x": x, "x_prev": x.copy(), "gid": gids, "diam": init.scene_diameters(self.scene, gids)}
+            diam = init.scene_diameters(self.scene, gids)
+            x = init.contain(self.scene, init.positions(self.scene, gids), diam)
+            local = {"x": x, "x_prev": x.copy(), "gid": gids, "diam": diam}
             local.update({name: x.copy() for name in extra})
             hist = (np.zeros(gids.shape[0] + 1, np.int64), np.zeros(0, np.int64), np.zeros(0))
             st.lambda_fresh, st.iteration = True, 0
@@ -144,10 +152,12 @@ class Solver:
             local.update({name: getattr(source, name) for name in extra})
             if source.qn is not None:
                 local["qn"] = source.qn
+            if source.wall_lambda is not None:
+                local["wall_lambda"] = source.wall_lambda
             hist = (source.hist_offsets(), source.hist_gid, source.hist_lambda)
             st.lambda_fresh, st.iteration = bool(source.lambda_fresh), int(source.iteration)
             self.counters.update(source.counters)
-        ghost = {k: v[:0] for k, v in local.items() if k not in ("x_prev", "qn")}
+        ghost = {k: v[:0] for k, v in local.items() if k not in ("x_prev", "qn", "wall_lambda")}
         lam_fresh = st.lambda_fresh
         st.set_particles(local, ghost)
         st.lambda_fresh = lam_fresh
@@ -201,8 +211,17 @@ class Solver:
         red = Reduction().add_exact("sums", [("x", self.dim), ("xx", 1)]).begin()
         kernels.local_sums(st.x, st.n_local, red.acc("sums"))
         red.reduce(self.comm)
+        if self.point is not None:  # the point potential: P and W = 1/2 sum |X_i - P|^2
+            self.sum_x = red.values("x")
+            return self.point.copy(), self.point_potential(red.value("xx"), self.sum_x)
         xbar = red.values("x") / self.n
         return xbar, 0.5 * (red.value("xx") - self.n * float(xbar @ xbar))
+
+    def point_potential(self, xx2, sum_x):
+        """W = 1/2 sum_i |X_i - P|^2 = 1/2 (sum |X_i|^2 - 2 P.sum X_i + N |P|^2) from the exact
+        sums xx2 = sum |X_i|^2 and sum_x = sum X_i (b,)."""
+        p = self.point
+        return 0.5 * (xx2 - 2.0 * float(p @ sum_x) + self.n * float(p @ p))
 
     # ---- one iteration ----------------------------------------------------------------------
     def step(self):
@@ -232,10 +251,18 @@ class Solver:
         self.check_finite(red)
         dx2, xx2 = red.value("dx2"), red.value("xx2")
         max_step = math.sqrt(red.max("step2"))
-        fig = {
-            "xbar": red.values("x") / self.n,
+        if self.point is None:
+            xbar_next = red.values("x") / self.n
             # W^n = 1/2 sum |X_i^n - Xbar^n|^2 = 1/2 (sum |X_i^n|^2 - N |Xbar^n|^2): free here
-            "W": 0.5 * (xx2 - self.n * float(xbar @ xbar)),
+            w = 0.5 * (xx2 - self.n * float(xbar @ xbar))
+        else:
+            if self.sum_x is None:  # X^n came from a pass that did not sum it (L-BFGS)
+                self.centre_of_mass()
+            xbar_next, w = self.point.copy(), self.point_potential(xx2, self.sum_x)
+            self.sum_x = red.values("x")
+        fig = {
+            "xbar": xbar_next,
+            "W": w,
             "relative_change": math.sqrt(dx2 / xx2) if xx2 > 0 else (0.0 if dx2 == 0 else math.inf),
             "change2": dx2,
             "max_step": max_step,

@@ -16,7 +16,9 @@ per-particle dataset is global id i::
         position      (N, b)   float64   X_i
         diameter      (N,)     float64   d_i
         pressure      (N,)     float64   mu_i = sum_j lambda_ij
-        contacts      (N,)     int32     partners with lambda_ij > 0
+        contacts      (N,)     int32     partners (and container walls) with lambda > 0
+        wall_force    (N,)     float64   sum_w lambda_iw |grad phi_iw|: the container's push on
+                                         the sphere (runs in a container only)
         net_force     (N,)     float64   |g_i|, g_i = (X_i - Xbar) + sum_j lambda_ij grad_i phi_ij:
                                          the sphere's row of the KKT residual (run snapshots)
         (attribute checksums: JSON {dataset: checksum of its 64-bit words, weighted by

@@ -34,6 +34,7 @@ from numba import njit
 
 from mpipack.parallel import exactsum
 from mpipack.kernels import metrics
+from mpipack.kernels import walls as walls_mod
 
 SMOOTH = 0
 NONSMOOTH = 1
@@ -106,7 +107,8 @@ def gradient_scale(form, m, r):
 
 @njit(cache=True, inline="always")
 def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j,
-                          pair_lambda, xbar, a1, a2, a3, a4, beta, update_lambda, acc, maxima):
+                          pair_lambda, walls, wall_lambda, xbar, a1, a2, a3, a4, beta, update_lambda,
+                          acc, maxima):
     # form and dim are compile-time constants of each wrapper below: LLVM removes the dead
     # branches and keeps the coordinates in registers (a runtime range(dim) loop does not).
     fbuf = exactsum.staging(acc)
@@ -117,6 +119,7 @@ def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offse
     xb2 = xbar[2] if dim > 2 else 0.0
     max_step2 = 0.0
     max_overlap = 0.0
+    wall_overlap = 0.0
     min_ratio2 = 1.0
     n_active = 0
     for i in range(n_local):
@@ -151,6 +154,25 @@ def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offse
                 f0 -= g * d0
                 f1 -= g * d1
                 f2 -= g * d2
+        # the container's walls: the same two equations per wall (``kernels.walls``), with
+        # lambda_iw stored with the sphere; a contact counts twice, as a pair in both its rows
+        for wall in range(walls.shape[0]):
+            s, n0, n1, n2, curv = walls_mod.gap(dim, walls, wall, xi0, xi1, xi2)
+            phi, cw = walls_mod.wall_constraint(form == SMOOTH, di, s)
+            lam = wall_lambda[i, wall]
+            if update_lambda:
+                lam = lam + beta * phi
+                if lam < 0.0:
+                    lam = 0.0
+                wall_lambda[i, wall] = lam
+            if phi > 0.0 and (0.5 * di - s) > wall_overlap * (0.5 * di):
+                wall_overlap = (0.5 * di - s) / (0.5 * di)
+            if lam > 0.0:
+                n_active += 2
+                g = lam * (a3 + a4 * phi) * cw  # m grad_i phi_iw = -g n_iw
+                f0 -= g * n0
+                f1 -= g * n1
+                f2 -= g * n2
         # (2.10a); also the exact partial sums and the maxima for the fused reduction
         xn0 = a1 * xi0 + (a2 * x_prev[i, 0] if two_step else 0.0) - a3 * (xi0 - xb0) - f0
         x_new[i, 0] = xn0
@@ -177,6 +199,8 @@ def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offse
     if form == SMOOTH:
         max_overlap = 1.0 - np.sqrt(min_ratio2)
     maxima[MAX_STEP2] = max_step2
+    if wall_overlap > max_overlap:  # (a NaN max_overlap stays NaN: the guard must see it)
+        max_overlap = wall_overlap
     maxima[MAX_OVERLAP] = max_overlap
     return n_active
 
@@ -184,43 +208,44 @@ def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offse
 _DOC = """(2.10b) then (2.10a) for one form and dimension; see the module docstring.
 
     Shapes: x, x_prev, x_new (n_total, b); diam (n_total,); pair_offsets (n_local+1,);
-    pair_j int32 and pair_lambda float64 (n_pairs,); xbar (b,);
+    pair_j int32 and pair_lambda float64 (n_pairs,); walls (n_walls, 8) and wall_lambda
+    (n_local, n_walls) (``kernels.walls``; n_walls = 0 without a container); xbar (b,);
     acc int64 (b+2, exactsum.NBINS+1), added to; maxima float64 (N_MAX,), overwritten.
-    Writes x_new[:n_local] and, if update_lambda, pair_lambda. Returns the number of row
-    entries with lambda > 0.
+    Writes x_new[:n_local] and, if update_lambda, pair_lambda and wall_lambda. Returns the
+    number of row entries with lambda > 0 (a wall contact counts 2, like a pair's two entries).
     """
 
 
 # One small wrapper per (form, dim), so that only what a scene uses is compiled (and cached).
 # Written out rather than made by a closure factory: numba caches top-level functions only.
 @njit(cache=True)
-def step_s1(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
-    return _multipliers_and_step(SMOOTH, 1, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
+def step_s1(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(SMOOTH, 1, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def step_s2(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
-    return _multipliers_and_step(SMOOTH, 2, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
+def step_s2(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(SMOOTH, 2, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def step_s3(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
-    return _multipliers_and_step(SMOOTH, 3, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
+def step_s3(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(SMOOTH, 3, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def step_ns1(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
-    return _multipliers_and_step(NONSMOOTH, 1, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
+def step_ns1(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(NONSMOOTH, 1, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def step_ns2(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
-    return _multipliers_and_step(NONSMOOTH, 2, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
+def step_ns2(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(NONSMOOTH, 2, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def step_ns3(x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
-    return _multipliers_and_step(NONSMOOTH, 3, x, x_prev, x_new, n_local, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
+def step_ns3(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(NONSMOOTH, 3, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 _STEPS = {("S", 1): step_s1, ("S", 2): step_s2, ("S", 3): step_s3,
@@ -430,15 +455,36 @@ def entry_multiplier(form, lam, phi, r2, dij, beta, lambda_mode, pen, lam_floor,
 
 
 @njit(cache=True, inline="always")
-def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda, xbar, beta,
-                  lambda_mode, lam_scale, pen, lam_floor, contact_tol, measures_a, acc, maxima,
-                  pressure, contacts, net_force, pair_force):
+def wall_multiplier(form, lam, phi, s, di, beta, lambda_mode, pen, lam_floor, contact_tol):
+    """``entry_multiplier`` for a wall constraint of a sphere of diameter di at distance s inside
+    (``kernels.walls``): its size unit is di^p, and it is in contact when s <= (di/2)(1 + tol)."""
+    if lambda_mode == LAMBDA_FORCE:
+        unit = 1.0 / (di * di) if form == SMOOTH else 1.0 / di
+        w = lam if lam > lam_floor else lam_floor
+        lam = lam + pen * w * phi * unit
+        if lam < 0.0:
+            lam = 0.0
+        if s > 0.5 * di * (1.0 + contact_tol):
+            lam = 0.0
+    elif lambda_mode != LAMBDA_STORED:
+        lam = lam + beta * phi
+        if lam < 0.0:
+            lam = 0.0
+    return lam
+
+
+@njit(cache=True, inline="always")
+def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda, walls,
+                  wall_lambda, xbar, beta, lambda_mode, lam_scale, pen, lam_floor, contact_tol,
+                  measures_a, acc, maxima, pressure, contacts, net_force, pair_force, wall_force):
     dim = x.shape[1]
     keep_pair_force = pair_force.shape[0] > 0
+    keep_wall_force = wall_force.shape[0] > 0
     fbuf = exactsum.staging(acc)
     g = np.zeros(dim)
     d = np.zeros(dim)
     max_overlap = 0.0
+    wall_overlap = 0.0
     min_ratio2 = 1.0
     max_compl = 0.0
     max_lam = 0.0
@@ -494,6 +540,36 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
                     cf += lam
                     for k in range(dim):
                         g[k] -= lam * d[k] / r
+        # the container's walls (``kernels.walls``): lambda_iw grad_i phi_iw = -lambda_iw c n_iw
+        x0, x1, x2 = coordinates(dim, x, i)
+        wf = 0.0
+        for wall in range(walls.shape[0]):
+            s, n0, n1, n2, curv = walls_mod.gap(dim, walls, wall, x0, x1, x2)
+            phi, cw = walls_mod.wall_constraint(form == SMOOTH, di, s)
+            lam = wall_multiplier(form, wall_lambda[i, wall], phi, s, di, beta, lambda_mode, pen,
+                                  lam_floor, contact_tol)
+            if lambda_mode == LAMBDA_UPDATE:
+                wall_lambda[i, wall] = lam
+            lam = lam * lam_scale
+            if phi > 0.0 and (0.5 * di - s) > wall_overlap * (0.5 * di):
+                wall_overlap = (0.5 * di - s) / (0.5 * di)
+            if lam > 0.0:
+                n_active += 2
+                nc += 1
+                c = lam * abs(phi)
+                if c > max_compl:
+                    max_compl = c
+                if lam > max_lam:
+                    max_lam = lam
+                cf += lam * cw
+                wf += lam * cw
+                g[0] -= lam * cw * n0
+                if dim > 1:
+                    g[1] -= lam * cw * n1
+                if dim > 2:
+                    g[2] -= lam * cw * n2
+        if keep_wall_force:
+            wall_force[i] = wf
         kkt2 = 0.0
         for k in range(dim):
             kkt2 += g[k] * g[k]
@@ -511,6 +587,8 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
     exactsum.flush(fbuf, acc)
     if form == SMOOTH:
         max_overlap = 1.0 - np.sqrt(min_ratio2)
+    if wall_overlap > max_overlap:
+        max_overlap = wall_overlap
     maxima[MET_OVERLAP] = max_overlap
     maxima[MET_COMPL] = max_compl
     maxima[MET_LAMBDA] = max_lam
@@ -519,27 +597,30 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
 
 
 @njit(cache=True)
-def metrics_s(x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, pen, floor, tol, area, acc, mx,
-              pressure, contacts, net_force, pair_force):
-    return _pair_metrics(SMOOTH, x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, pen, floor, tol, area,
-                         acc, mx, pressure, contacts, net_force, pair_force)
+def metrics_s(x, n_local, diam, gid, po, pj, pl, wa, wl, xbar, beta, upd, scale, pen, floor, tol, area, acc,
+              mx, pressure, contacts, net_force, pair_force, wall_force):
+    return _pair_metrics(SMOOTH, x, n_local, diam, gid, po, pj, pl, wa, wl, xbar, beta, upd, scale, pen, floor,
+                         tol, area, acc, mx, pressure, contacts, net_force, pair_force, wall_force)
 
 
 @njit(cache=True)
-def metrics_ns(x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, pen, floor, tol, area, acc, mx,
-              pressure, contacts, net_force, pair_force):
-    return _pair_metrics(NONSMOOTH, x, n_local, diam, gid, po, pj, pl, xbar, beta, upd, scale, pen, floor, tol, area,
-                         acc, mx, pressure, contacts, net_force, pair_force)
+def metrics_ns(x, n_local, diam, gid, po, pj, pl, wa, wl, xbar, beta, upd, scale, pen, floor, tol, area, acc,
+               mx, pressure, contacts, net_force, pair_force, wall_force):
+    return _pair_metrics(NONSMOOTH, x, n_local, diam, gid, po, pj, pl, wa, wl, xbar, beta, upd, scale, pen, floor,
+                         tol, area, acc, mx, pressure, contacts, net_force, pair_force, wall_force)
 
 
 def pair_metrics(form):
     """The compiled metrics pass for a form (any dimension). Arguments: (x, n_local, diam, gid
-    (n_total,), pair_offsets, pair_j, pair_lambda, xbar, beta, lambda_mode, lam_scale, pen, lam_floor,
+    (n_total,), pair_offsets, pair_j, pair_lambda, walls, wall_lambda (``kernels.walls``: the
+    walls count in every figure like pairs), xbar, beta, lambda_mode, lam_scale, pen, lam_floor,
     contact_tol (LAMBDA_FORCE only), measures_a (with the
     overlap and sphere measures of the paper's A: the costly part, lens areas), acc (5, NBINS+1), maxima
     (N_MET_MAX,), pressure (n_local,), contacts int32 (n_local,), net_force (n_local,): |g_i|,
     pair_force: each row entry's multiplier (the one pressure sums), shape (pair_offsets[n_local],),
-    or shape (0,) to skip); returns the number of row entries with lambda > 0."""
+    or shape (0,) to skip), wall_force: each local sphere's sum_w lambda_iw |grad phi_iw| (the
+    walls' push on it), shape (n_local,) or (0,) to skip); returns the number of row entries
+    with lambda > 0 (a wall contact counts 2)."""
     return metrics_s if form == "S" else metrics_ns
 
 

@@ -40,6 +40,7 @@ from numba import njit
 
 from mpipack.parallel import exactsum
 from mpipack.kernels.daha import NONSMOOTH, SMOOTH, constraint, coordinates, gradient_scale, separation
+from mpipack.kernels import walls as walls_mod
 
 # exact rows after the b rows of sum X^{n+1}
 ACC_DX2, ACC_XX2, ACC_POWER, ACC_FORCE2 = 0, 1, 2, 3
@@ -61,8 +62,8 @@ def _coordinate(a1, a2, a3, xi, xp, xb, f):
 
 @njit(cache=True, inline="always")
 def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda,
-                  xbar, a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual, vmax, update_lambda,
-                  acc, maxima, all_sums):
+                  walls, wall_lambda, xbar, a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual,
+                  vmax, update_lambda, acc, maxima, all_sums):
     # form and dim are compile-time constants of each wrapper below: LLVM removes the dead
     # branches and keeps the coordinates in scalars (with small arrays indexed by a runtime
     # range(dim) loop the pass took 8 - 10% longer, 3D N = 2000 and 2D N = 8000 states)
@@ -72,6 +73,7 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
     xb2 = xbar[2] if dim > 2 else 0.0
     max_step2 = 0.0
     min_ratio2 = 1.0
+    wall_overlap = 0.0
     max_gain = 0.0
     max_row = 0.0
     n_active = 0
@@ -133,6 +135,49 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
                 f0 -= g * d0
                 f1 -= g * d1
                 f2 -= g * d2
+        # the container's walls (``kernels.walls``), each term as a pair's with the sphere's
+        # own diameter as size: phi = c (d_i/2 - s), |grad phi|^2 = c^2, |Hess phi| = c / rho
+        for wall in range(walls.shape[0]):
+            s, n0, n1, n2, curv = walls_mod.gap(dim, walls, wall, xi0, xi1, xi2)
+            phi, cw = walls_mod.wall_constraint(form == SMOOTH, di, s)
+            g2 = cw * cw
+            hess = cw * curv
+            unit = 1.0
+            if clip:
+                unit = 1.0 / (di * di) if form == SMOOTH else 1.0 / di
+            phin = phi * unit
+            lam = wall_lambda[i, wall]
+            if update_lambda:
+                wd = 1.0
+                pd = phi
+                if weighted_dual:
+                    wd = lam if lam > lam_floor else lam_floor
+                    pd = phin
+                lam = lam + beta * wd * pd
+                if lam < 0.0:
+                    lam = 0.0
+                wall_lambda[i, wall] = lam
+            if phi > 0.0 and (0.5 * di - s) > wall_overlap * (0.5 * di):
+                wall_overlap = (0.5 * di - s) / (0.5 * di)
+            if lam > 0.0 or phi > 0.0:
+                gain += g2
+            wgt = lam if lam > lam_floor else lam_floor
+            if clip:
+                m = a3 * lam + a4 * wgt * phin
+                if m < 0.0:
+                    m = 0.0
+            elif lam > 0.0:
+                m = a3 * lam + a4 * wgt * phi
+            else:
+                m = 0.0
+            if lam > 0.0:
+                n_active += 2
+            if m != 0.0:
+                row += a4 * wgt * g2 * unit + abs(m) * hess
+                g = m * cw  # m grad_i phi_iw = -g n_iw
+                f0 -= g * n0
+                f1 -= g * n1
+                f2 -= g * n2
         row = a3 + 2.0 * row
         if gain > max_gain:
             max_gain = gain
@@ -182,7 +227,10 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
             max_step2 = dx2
     exactsum.flush(fbuf, acc)
     maxima[MAX_STEP2] = max_step2
-    maxima[MAX_OVERLAP] = 1.0 - np.sqrt(min_ratio2)
+    max_overlap = 1.0 - np.sqrt(min_ratio2)
+    if wall_overlap > max_overlap:
+        max_overlap = wall_overlap
+    maxima[MAX_OVERLAP] = max_overlap
     maxima[MAX_GAIN] = max_gain
     maxima[MAX_ROW] = max_row
     return n_active
@@ -190,7 +238,8 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
 
 _DOC = """One pass of the fire-al step for one form and dimension; see the module docstring.
 
-    Arguments: (x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda, xbar,
+    Arguments: (x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda, walls,
+    wall_lambda (``kernels.walls``; shape (0, 8) and (n_local, 0) without a container), xbar,
     a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual, vmax, update_lambda, acc, maxima,
     all_sums=True); all_sums False: of the exact sums only |X^n|^2 (an L-BFGS gradient pass).
     Shapes as ``kernels.multipliers_and_step``; acc int64 (b+N_ACC, exactsum.NBINS+1), added to;
@@ -201,33 +250,33 @@ _DOC = """One pass of the fire-al step for one form and dimension; see the modul
 # error_model "numpy": no zero-division checks in the pair loop (every divisor is a diameter
 # or a guarded distance); the results are the same bits
 @njit(cache=True, error_model="numpy")
-def fire_s1(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(SMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_s1(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(SMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_s2(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(SMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_s2(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(SMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_s3(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(SMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_s3(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(SMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns1(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(NONSMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_ns1(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(NONSMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns2(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(NONSMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_ns2(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(NONSMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns3(x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(NONSMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_ns3(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(NONSMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 _STEPS = {("S", 1): fire_s1, ("S", 2): fire_s2, ("S", 3): fire_s3,

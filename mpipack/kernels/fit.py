@@ -11,7 +11,9 @@ the squared KKT residual of (2.4) with multipliers m. Its gradient per pair kl i
     g_kl = df/dm_kl = grad_k phi_kl . r_k + grad_l phi_kl . r_l = grad_k phi_kl . (r_k - r_l)
 
 (grad_l phi_kl = -grad_k phi_kl), and a projected gradient step is m <- max(0, m - s g)
-(accelerated as in ``fit``).
+(accelerated as in ``fit``). A container's walls (``kernels.walls``) add a multiplier m_iw per
+sphere and wall in contact, with g_iw = grad_i phi_iw . r_i (local: a wall has no partner),
+held in (n_local, n_walls) arrays beside the pair contacts.
 Layout as in ``kernels``: particle i's pairs are entries pair_offsets[i] .. pair_offsets[i+1]
 of pair_j (indices into x, ghosts included), and every pair is stored in both partners' rows.
 Each operation on a pair is bitwise symmetric in its partners (x_k - x_l = -(x_l - x_k) and
@@ -23,7 +25,9 @@ import numpy as np
 from numba import njit
 
 from mpipack.parallel import exactsum
-from mpipack.kernels.daha import NONSMOOTH, SMOOTH, constraint, coordinates, entry_multiplier, separation
+from mpipack.kernels.daha import (NONSMOOTH, SMOOTH, constraint, coordinates, entry_multiplier, separation,
+                                  wall_multiplier)
+from mpipack.kernels import walls as walls_mod
 
 # exact rows: sum_i |r_i|^2 and the restart test's sum over entries of g (m_next - m_prev)
 # (every pair counted twice, in both of its rows)
@@ -35,10 +39,18 @@ N_FIT_MAX = 1
 
 
 @njit(cache=True, inline="always")
-def _start(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, beta, lambda_mode,
-           lam_scale, pen, lam_floor, contact_tol, m, active):
+def _start(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, walls, wall_lambda, beta,
+           lambda_mode, lam_scale, pen, lam_floor, contact_tol, m, active, wm, wactive):
     dim = x.shape[1]
     for i in range(n_local):
+        x0, x1, x2 = coordinates(dim, x, i)
+        for wall in range(walls.shape[0]):
+            s, n0, n1, n2, curv = walls_mod.gap(dim, walls, wall, x0, x1, x2)
+            phi, cw = walls_mod.wall_constraint(form == SMOOTH, diam[i], s)
+            wactive[i, wall] = s <= 0.5 * diam[i] * (1.0 + contact_tol)
+            lam = wall_multiplier(form, wall_lambda[i, wall], phi, s, diam[i], beta, lambda_mode, pen,
+                                  lam_floor, contact_tol)
+            wm[i, wall] = lam * lam_scale if wactive[i, wall] else 0.0
         for e in range(pair_offsets[i], pair_offsets[i + 1]):
             j = pair_j[e]
             r2 = 0.0
@@ -53,13 +65,24 @@ def _start(form, x, n_local, diam, pair_offsets, pair_j, pair_lambda, beta, lamb
 
 
 @njit(cache=True)
-def start_s(x, n_local, diam, po, pj, pl, beta, mode, scale, pen, floor, tol, m, active):
-    _start(SMOOTH, x, n_local, diam, po, pj, pl, beta, mode, scale, pen, floor, tol, m, active)
+def start_s(x, n_local, diam, po, pj, pl, wa, wl, beta, mode, scale, pen, floor, tol, m, active, wm, wact):
+    _start(SMOOTH, x, n_local, diam, po, pj, pl, wa, wl, beta, mode, scale, pen, floor, tol, m, active, wm, wact)
 
 
 @njit(cache=True)
-def start_ns(x, n_local, diam, po, pj, pl, beta, mode, scale, pen, floor, tol, m, active):
-    _start(NONSMOOTH, x, n_local, diam, po, pj, pl, beta, mode, scale, pen, floor, tol, m, active)
+def start_ns(x, n_local, diam, po, pj, pl, wa, wl, beta, mode, scale, pen, floor, tol, m, active, wm, wact):
+    _start(NONSMOOTH, x, n_local, diam, po, pj, pl, wa, wl, beta, mode, scale, pen, floor, tol, m, active, wm,
+           wact)
+
+
+@njit(cache=True, inline="always")
+def _wall_grad(form, x, i, walls, wall, di):
+    """grad_{X_i} phi_iw = -c n_iw as three scalars (c = d_i (S) or 1 (NS))."""
+    dim = x.shape[1]
+    x0, x1, x2 = coordinates(dim, x, i)
+    s, n0, n1, n2, curv = walls_mod.gap(dim, walls, wall, x0, x1, x2)
+    cw = di if form == SMOOTH else 1.0
+    return -cw * n0, -cw * n1, -cw * n2
 
 
 @njit(cache=True)
@@ -99,7 +122,21 @@ def _grad(form, x, i, j):
 
 
 @njit(cache=True, inline="always")
-def _step(form, x, n_local, c_offsets, c_j, m, m_prev, g, xbar, step, beta, r, acc):
+def _fista(m, m_prev, g, step, beta):
+    """One projected gradient step from y = m and FISTA's projected extrapolation: (new y,
+    the step's m_next)."""
+    new = m - step * g
+    if new < 0.0:
+        new = 0.0
+    y = new + beta * (new - m_prev)
+    if y < 0.0:
+        y = 0.0
+    return y, new
+
+
+@njit(cache=True, inline="always")
+def _step(form, x, n_local, c_offsets, c_j, m, m_prev, g, walls, diam, wm, wm_prev, wg, wactive,
+          xbar, step, beta, r, acc):
     dim = x.shape[1]
     fbuf = exactsum.staging(acc)
     for i in range(n_local):
@@ -120,6 +157,17 @@ def _step(form, x, n_local, c_offsets, c_j, m, m_prev, g, xbar, step, beta, r, a
                 r0 += y * d0
                 r1 += y * d1
                 r2_ += y * d2
+        for wall in range(walls.shape[0]):
+            if not wactive[i, wall]:
+                continue
+            y, new = _fista(wm[i, wall], wm_prev[i, wall], wg[i, wall], step, beta)
+            wm_prev[i, wall] = new
+            wm[i, wall] = y
+            if y > 0.0:
+                d0, d1, d2 = _wall_grad(form, x, i, walls, wall, diam[i])
+                r0 += y * d0
+                r1 += y * d1
+                r2_ += y * d2
         r[i, 0] = r0
         rr = r0 * r0
         if dim > 1:
@@ -133,17 +181,18 @@ def _step(form, x, n_local, c_offsets, c_j, m, m_prev, g, xbar, step, beta, r, a
 
 
 @njit(cache=True)
-def step_s(x, n_local, co, cj, m, m_prev, g, xbar, step, beta, r, acc):
-    _step(SMOOTH, x, n_local, co, cj, m, m_prev, g, xbar, step, beta, r, acc)
+def step_s(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, step, beta, r, acc):
+    _step(SMOOTH, x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, step, beta, r, acc)
 
 
 @njit(cache=True)
-def step_ns(x, n_local, co, cj, m, m_prev, g, xbar, step, beta, r, acc):
-    _step(NONSMOOTH, x, n_local, co, cj, m, m_prev, g, xbar, step, beta, r, acc)
+def step_ns(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, step, beta, r, acc):
+    _step(NONSMOOTH, x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, step, beta, r, acc)
 
 
 @njit(cache=True, inline="always")
-def _gradient(form, x, n_local, c_offsets, c_j, m, m_prev, step, r, g, acc, maxima):
+def _gradient(form, x, n_local, c_offsets, c_j, m, m_prev, walls, diam, wm, wm_prev, wg, wactive,
+              step, r, g, acc, maxima):
     dim = x.shape[1]
     fbuf = exactsum.staging(acc)
     max_row = 0.0
@@ -169,6 +218,17 @@ def _gradient(form, x, n_local, c_offsets, c_j, m, m_prev, step, r, g, acc, maxi
             if new < 0.0:
                 new = 0.0
             turn += ge * (new - m_prev[c])
+        for wall in range(walls.shape[0]):
+            if not wactive[i, wall]:
+                continue
+            d0, d1, d2 = _wall_grad(form, x, i, walls, wall, diam[i])
+            ge = d0 * ri0 + d1 * ri1 + d2 * ri2
+            row += d0 * d0 + d1 * d1 + d2 * d2
+            wg[i, wall] = ge
+            new = wm[i, wall] - step * ge
+            if new < 0.0:
+                new = 0.0
+            turn += ge * (new - wm_prev[i, wall])
         if row > max_row:
             max_row = row
         exactsum.add(fbuf, acc, FIT_TURN, turn)
@@ -177,13 +237,13 @@ def _gradient(form, x, n_local, c_offsets, c_j, m, m_prev, step, r, g, acc, maxi
 
 
 @njit(cache=True)
-def gradient_s(x, n_local, co, cj, m, m_prev, step, r, g, acc, maxima):
-    _gradient(SMOOTH, x, n_local, co, cj, m, m_prev, step, r, g, acc, maxima)
+def gradient_s(x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima):
+    _gradient(SMOOTH, x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima)
 
 
 @njit(cache=True)
-def gradient_ns(x, n_local, co, cj, m, m_prev, step, r, g, acc, maxima):
-    _gradient(NONSMOOTH, x, n_local, co, cj, m, m_prev, step, r, g, acc, maxima)
+def gradient_ns(x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima):
+    _gradient(NONSMOOTH, x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima)
 
 
 _KERNELS = {"S": (start_s, step_s, gradient_s), "NS": (start_ns, step_ns, gradient_ns)}
@@ -192,18 +252,21 @@ _KERNELS = {"S": (start_s, step_s, gradient_s), "NS": (start_ns, step_ns, gradie
 def fit_kernels(form):
     """(start, step, gradient) for a form.
 
-    start(x, n_local, diam, pair_offsets, pair_j, pair_lambda, beta, lambda_mode, lam_scale,
-          pen, lam_floor, contact_tol, m, active): m (n_entries,) the run's own multipliers
-          (``kernels.entry_multiplier`` times lam_scale) on pairs in contact, 0 elsewhere;
-          active (n_entries,) bool, the pair is in contact to contact_tol.
-    step(x, n_local, c_offsets, c_j, m, m_prev, g, xbar, s, beta, r, acc): over the pairs in
+    start(x, n_local, diam, pair_offsets, pair_j, pair_lambda, walls, wall_lambda, beta,
+          lambda_mode, lam_scale, pen, lam_floor, contact_tol, m, active, wm, wactive): m
+          (n_entries,) the run's own multipliers (``kernels.entry_multiplier`` times lam_scale)
+          on pairs in contact, 0 elsewhere; active (n_entries,) bool, the pair is in contact to
+          contact_tol; wm float64 and wactive bool (n_local, n_walls), the same for the walls.
+    The walls' arrays (walls, diam, wm, wm_prev, wg, wactive) follow m_prev (step) and m_prev
+    (gradient): every operation of a pair contact applied to each wall contact of a sphere.
+    step(x, n_local, c_offsets, c_j, m, m_prev, g, <walls>, xbar, s, beta, r, acc): over the pairs in
           contact only (``contacts``: c_offsets (n_local+1,) their rows, c_j their partners,
           m, m_prev and g (n_contacts,) per contact), from the point y = m with its gradient
           g: the projected gradient step m_next = max(0, y - s g), then y <- max(0, m_next +
           beta (m_next - m_prev)) and m_prev <- m_next (FISTA's extrapolation, projected so
           that every point whose residual is summed is a feasible m >= 0); r (n_total, b) rows
           of the local particles at the new y; acc row FIT_R2 (sum |r_i|^2).
-    gradient(x, n_local, c_offsets, c_j, m, m_prev, s, r, g, acc, maxima):
+    gradient(x, n_local, c_offsets, c_j, m, m_prev, <walls>, s, r, g, acc, maxima):
           g (n_contacts,) at y = m from r with fresh ghost rows; acc row FIT_TURN (sum of
           g (max(0, m - s g) - m_prev): positive when the next step turns back, the restart
           test of O'Donoghue and Candes); maxima[FIT_ROW] the largest row

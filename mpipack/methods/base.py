@@ -93,9 +93,14 @@ class PaperScheme(Method):
     and a kernel ``self.kernel`` of the paper's signature (``kernels.daha``): the multiplier
     update (2.10b) when lambda is not yet the current X's, then the position update."""
 
+    #: the kernel takes the container's walls (``kernels.walls``); the nested kernels do not
+    #: (config refuses a container for NAP and NAV)
+    takes_walls = True
+
     def kernel_pass(self, solver, x_other, xbar, red, n_local=None, all_sums=True):
         st = solver.state
         n_local = st.n_local if n_local is None else n_local
+        walls = (st.walls, st.wall_lambda) if self.takes_walls else ()
         return self.kernel(st.x, x_other, st.x_new, n_local, st.diam, st.pair_offsets, st.pair_j,
-                           st.pair_lambda, xbar, *self.coeffs, self.beta, not st.lambda_fresh,
+                           st.pair_lambda, *walls, xbar, *self.coeffs, self.beta, not st.lambda_fresh,
                            red.acc("step"), red.maxima("step"))

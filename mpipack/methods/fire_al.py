@@ -54,7 +54,7 @@ class FireAL(Method):
         # the fire phase updates lambda every pass (its dual steps); the explosion is DAHA
         update = self.schedule.phase == Phase.FIRE or not st.lambda_fresh
         return self.kernel(st.x, x_other, st.x_new, n_local, st.diam, st.pair_offsets, st.pair_j,
-                           st.pair_lambda, xbar, *self.coeffs, update, red.acc("step"),
+                           st.pair_lambda, st.walls, st.wall_lambda, xbar, *self.coeffs, update, red.acc("step"),
                            red.maxima("step"), all_sums)
 
     def step_figures(self, red, fig):
@@ -132,11 +132,14 @@ class FireAL(Method):
         solver.check_finite(red)
         xbar = red.values("qn_x") / self.n
         xx2, move2 = red.value("xx2"), red.value("qn_move2")
+        if solver.point is not None:  # W pulls to a fixed point; X^{n+1} is not summed here
+            w_point = solver.point_potential(xx2, red.values("qn_x"))
+            xbar, solver.sum_x = solver.point.copy(), None
         dots = red.values("qn_dots")  # g.S_j, g.Y_j, g.G_OLD, g.g
         solver.moves.settle(math.sqrt(red.max("qn_step2")))
         fig = {
             "xbar": xbar,
-            "W": 0.5 * (xx2 - self.n * float(xbar @ xbar)),
+            "W": 0.5 * (xx2 - self.n * float(xbar @ xbar)) if solver.point is None else w_point,
             # the change of the last step (X^n - X^{n-1})
             "relative_change": math.sqrt(move2 / xx2) if xx2 > 0 else 0.0,
             "change2": move2,

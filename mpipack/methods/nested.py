@@ -39,6 +39,8 @@ class Nested(PaperScheme):
     """NAP or NAV (``method.name``), with method.l_inner inner steps at most and the inner
     criterion method.eps_inner."""
 
+    takes_walls = False
+
     extra_fields = ("x_lin",)
     counts_inner = True
 

@@ -15,6 +15,10 @@ Shapes (n_total = n_local + n_ghost, b = dim):
                            about (ghost rows too); None for DAHA/AHA
     qn       (n_local, 2m+1, b)  the L-BFGS inner solver's per-sphere memory (``qn``), local
                            rows only; None until the fire-al schedule switches to it
+    walls    (n_walls, 8)  the container's walls (``kernels.walls``), the same on every rank;
+                           (0, 8) without a container
+    wall_lambda (n_local, n_walls)  each local sphere's wall multipliers lambda_iw, which
+                           travel with the sphere (local rows only)
 
 ``lambda_fresh`` is True when pair_lambda already holds lambda for the current X (at the start,
 lambda^0; after ``finish``), False when it holds lambda^{n-1} and the next step must first
@@ -42,6 +46,7 @@ class BlockState:
         x, x_prev      (m, b)   X^n and X^{n-1}
         x_lin          (m, b)   NAP/NAV's linearisation point X^p, else None
         qn             (m, 2k+1, b)  the L-BFGS memory (k pairs) (``State.qn``), else None
+        wall_lambda    (m, n_walls)  the wall multipliers (``State.wall_lambda``), else None
         diam           (m,)
         hist_count     (m,)     int64, partners with lambda > 0 of each particle
         hist_gid       (k,)     int64, their gids (each particle's run in gid order)
@@ -62,6 +67,7 @@ class BlockState:
     hist_lambda: np.ndarray
     x_lin: Optional[np.ndarray] = None
     qn: Optional[np.ndarray] = None
+    wall_lambda: Optional[np.ndarray] = None
     iteration: int = 0
     lambda_fresh: bool = True
     counters: dict = field(default_factory=dict)
@@ -94,6 +100,8 @@ class State:
         self.pair_lambda = np.zeros(0)
         self.x_lin = None  # linearisation point X^p of the nested methods (n_total, b)
         self.qn = None  # the L-BFGS memory (n_local, 2m+1, b), once the schedule uses it
+        self.walls = np.zeros((0, 8))  # the container's walls (``kernels.walls``)
+        self.wall_lambda = np.zeros((0, 0))  # (n_local, n_walls)
         self.lambda_fresh = True
         self.iteration = 0
 
@@ -120,6 +128,10 @@ class State:
             self.x_lin = np.concatenate([local["x_lin"], ghost["x_lin"]]).reshape(n, self.dim)
         if "qn" in local:
             self.qn = np.ascontiguousarray(local["qn"])
+        if "wall_lambda" in local:
+            self.wall_lambda = np.ascontiguousarray(local["wall_lambda"]).reshape(n_local, self.walls.shape[0])
+        else:
+            self.wall_lambda = np.zeros((n_local, self.walls.shape[0]))
 
     def local_fields(self):
         """Copies of the per-particle arrays that travel with a local particle."""
@@ -130,6 +142,8 @@ class State:
             out["x_lin"] = self.x_lin[:n].copy()
         if self.qn is not None:
             out["qn"] = self.qn[:n].copy()
+        if self.walls.shape[0] > 0:
+            out["wall_lambda"] = self.wall_lambda[:n].copy()
         return out
 
     def rotate(self):

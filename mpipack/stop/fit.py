@@ -7,7 +7,7 @@ configuration's distance to stationarity. The residual of X itself is
 
     kkt(X) = min over m >= 0 of ||grad W(X) + sum_kl m_kl grad phi_kl(X)|| / ||grad W(X)||,
 
-m on the pairs in contact to stop.overlap (the active set of an approximate KKT point, as for
+m on the pairs (and the walls, ``kernels.walls``) in contact to stop.overlap (the active set of an approximate KKT point, as for
 the run's multipliers). It is what the certificate asks: X is stationary when some nonnegative
 contact forces hold every sphere in balance. The fit starts from the run's multipliers and
 takes projected gradient steps m <- max(0, y - g(y) / L) (``kernels_fit``, L the Gershgorin
@@ -62,8 +62,14 @@ def best_kkt(s, mode, pen, lam_floor, gw2, target, max_steps=None):
     start, step, gradient = kernels_fit.fit_kernels(s.scene.method.form)
     m_rows = np.zeros(n_entries)
     active = np.zeros(n_entries, dtype=np.bool_)
-    start(st.x, n_local, st.diam, st.pair_offsets, st.pair_j, st.pair_lambda, s.method.beta, mode,
-          s.method.kkt_lambda_scale, pen, lam_floor, s.scene.stop.overlap, m_rows, active)
+    n_walls = st.walls.shape[0]
+    wm = np.zeros((n_local, n_walls))  # the walls' multipliers, as m for the pair contacts
+    wactive = np.zeros((n_local, n_walls), dtype=np.bool_)
+    start(st.x, n_local, st.diam, st.pair_offsets, st.pair_j, st.pair_lambda, st.walls, st.wall_lambda,
+          s.method.beta, mode, s.method.kkt_lambda_scale, pen, lam_floor, s.scene.stop.overlap, m_rows,
+          active, wm, wactive)
+    wm_prev, wg = np.zeros_like(wm), np.zeros_like(wm)
+    walls = (st.walls, st.diam, wm, wm_prev, wg, wactive)
     # the pairs in contact, as rows of their own (the steps touch no other entry)
     c_offsets, c_src = kernels_fit.contacts(st.pair_offsets, n_local, active)
     c_j = st.pair_j[c_src]
@@ -78,9 +84,9 @@ def best_kkt(s, mode, pen, lam_floor, gw2, target, max_steps=None):
         """The step from y = m (see ``kernels_fit``), then r and g at the new y and the
         restart test's sum (collective)."""
         red.begin()
-        step(st.x, n_local, c_offsets, c_j, m, m_prev, g, s.xbar, length, beta, r, red.acc("fit"))
+        step(st.x, n_local, c_offsets, c_j, m, m_prev, g, *walls, s.xbar, length, beta, r, red.acc("fit"))
         comm_mod.forward(comm, s.plan, r, n_local)
-        gradient(st.x, n_local, c_offsets, c_j, m, m_prev, length, r, g, red.acc("fit"),
+        gradient(st.x, n_local, c_offsets, c_j, m, m_prev, *walls, length, r, g, red.acc("fit"),
                  red.maxima("fit"))
         red.reduce(comm)
         if red.max("stop_request") > 0:  # a signal on some rank: every rank ends the fit here

@@ -56,11 +56,12 @@ def measure(s, finalize=False, empty=False, overlap_a=True, pair_force=None):
     pressure = np.zeros(st.n_local)
     contacts = np.zeros(st.n_local, dtype=np.int32)
     net_force = np.zeros(st.n_local)
+    wall_force = np.zeros(st.n_local if st.walls.shape[0] else 0)
     n_active = s.metrics_kernel(st.x, 0 if empty else st.n_local, st.diam, st.gid, st.pair_offsets, st.pair_j,
-                                st.pair_lambda, s.xbar, s.method.beta, mode, s.method.kkt_lambda_scale, pen, floor,
+                                st.pair_lambda, st.walls, st.wall_lambda, s.xbar, s.method.beta, mode, s.method.kkt_lambda_scale, pen, floor,
                                 s.scene.stop.overlap, overlap_a,
                                 red.acc("met"), red.maxima("met"), pressure, contacts, net_force,
-                                np.empty(0) if pair_force is None else pair_force)
+                                np.empty(0) if pair_force is None else pair_force, wall_force)
     if mode == kernels.LAMBDA_UPDATE:
         st.lambda_fresh = True
     red.set_count("active", n_active)
@@ -83,7 +84,10 @@ def measure(s, finalize=False, empty=False, overlap_a=True, pair_force=None):
         "active_pairs": red.count("active") // 2,
         "radius_of_gyration": math.sqrt(gw2 / s.n),
     }
-    return fig, {"pressure": pressure, "contacts": contacts, "net_force": net_force}
+    fields = {"pressure": pressure, "contacts": contacts, "net_force": net_force}
+    if st.walls.shape[0]:
+        fields["wall_force"] = wall_force
+    return fig, fields
 
 
 def multiplier_mode(s, finalize=False):
@@ -128,6 +132,7 @@ def export_state(s):
     return BlockState(n_global=N, dim=s.dim, gid_lo=N * r // P, x=part["x"],
                       x_prev=part["x_prev"], diam=part["diam"], hist_count=np.diff(hist[0]),
                       hist_gid=hist[1], hist_lambda=hist[2], x_lin=part.get("x_lin"), qn=part.get("qn"),
+                      wall_lambda=part.get("wall_lambda"),
                       iteration=st.iteration, lambda_fresh=st.lambda_fresh,
                       counters=dict(s.counters))
 
