@@ -23,7 +23,7 @@ from typing import Optional
 METHODS = ("daha", "aha", "nap", "nav")
 FORMS = ("S", "NS")
 INIT_KINDS = ("gaussian", "ball", "lattice")
-STOP_RULES = ("certified", "eps")
+STOP_RULES = ("certified", "eps", "jammed")
 SCHEDULES = ("fixed", "fire-al")
 # method parameters of the fixed schedule when a scene sets some but not all (the paper's
 # section 4.3 values; gamma, if left out while alpha or beta is given, is sqrt(alpha beta):
@@ -65,7 +65,8 @@ DEFAULTS = {
     "method": {"name": "daha", "form": "S", "alpha": None, "beta": None, "gamma": None, "c": None,
                "schedule": None, "l_inner": 10, "eps_inner": 1e-9, "tau": 0.1},
     "stop": {"rule": None, "eps": 1e-5, "max_iter": "auto", "max_seconds": 0.0, "overlap": 1e-3,
-             "kkt": 1e-2, "w_rtol": 1e-4, "w_window": 0.1, "check_every": 50, "watchdog": True},
+             "kkt": 1e-2, "w_rtol": 1e-4, "w_window": 0.1, "check_every": 50, "watchdog": True,
+             "jammed_rtol": 1e-3},
     "neighbor": {"skin": 0.3, "rebalance": 1.2, "max_pair_gib": None},
     "output": {"progress_every": 0.5, "dir": None, "metrics_every": 0, "w_optimum": None,
                "snapshots": True, "snapshot_every": 0, "checkpoint_every": 0},
@@ -298,6 +299,7 @@ class Stop:
     w_window: float
     check_every: int
     watchdog: bool
+    jammed_rtol: float = 1e-3  # stop.rule = "jammed": W settled to this (``stop.rule``)
 
 
 @dataclass(frozen=True)
@@ -569,6 +571,9 @@ def validate(scene):
     _num(scene, "stop.check_every", int)
     if not isinstance(scene["stop"]["watchdog"], bool):
         raise SceneError(f"key 'stop.watchdog' must be true or false, got {scene['stop']['watchdog']!r}")
+    if not _num(scene, "stop.jammed_rtol") < 1:
+        raise SceneError(f"key 'stop.jammed_rtol' is a relative change of W, in (0, 1), "
+                         f"got {scene['stop']['jammed_rtol']!r}")
     if _num(scene, "neighbor.skin") > MAX_SKIN:
         raise SceneError(f"key 'neighbor.skin' is in largest diameters, at most {MAX_SKIN:g} "
                          f"(the pair rows grow like (1 + skin)^dim), got {scene['neighbor']['skin']!r}")

@@ -2,7 +2,8 @@
 ``check``, ``suite``, ...) and for the library API. The code is the same on every rank.
 
     0  converged (certified), or under the paper's rule (stop.rule = "eps") (4.3) fired on a
-       feasible configuration or the requested iterations ran (stop.eps = 0); ``check``: stable
+       feasible configuration or the requested iterations ran (stop.eps = 0), or under
+       stop.rule = "jammed" the run stopped jammed (not certified); ``check``: stable
     1  internal error (a bug: please report it with the traceback); ``suite``: a case failed
     2  bad input (scene, option, checkpoint, memory): one line naming the problem
     3  numerical trouble: NaN, Inf, divergence or oscillation without progress (``watchdog``);

@@ -36,6 +36,10 @@ def density_line(scene, res):
 def verdict(scene, res):
     if res["converged"]:
         return "converged (certified)"
+    if scene.stop.rule == "jammed" and res["stop_reason"] == "jammed":
+        # the figures on the verdict's own line: --quiet prints it alone
+        return (f"jammed (not certified): max overlap {res['max_overlap']:.3e} d, KKT residual "
+                f"{res['kkt_residual']:.3e} (not required), W = {res['W']:.10g}")
     if scene.stop.rule == "eps" and res["stop_reason"] == "eps":
         if not res["certificate"]["overlap"]["ok"]:
             return "stopped by (4.3) on an overlapping configuration, NOT a packing"

@@ -425,6 +425,8 @@ def _execute(comm, args, scene, state, out, walltime):
         elif code is None:
             code = exit_code(scene, res)
         summary.update(result_summary(scene, comm, res, wall, args.profile))
+        if scene.stop.rule == "jammed":
+            summary["jammed"] = jammed_summary(res, solver)
     failed = ((snapshots.failed if snapshots is not None else None) or checkpoints.failed
               or (metrics.failed if metrics is not None else None))
     if failed is not None and code != EXIT_NUMERICAL:
@@ -501,12 +503,28 @@ def result_summary(scene, comm, res, wall, profile):
     return out
 
 
+def jammed_summary(res, solver):
+    """summary.json's ``jammed`` under stop.rule = "jammed": whether the run stopped jammed, the
+    verdict in words, and the jammed test's figures at the stop (``stop.rule``: max overlap, W's
+    change over its window of iterations and the tolerances; None when it did not stop jammed)."""
+    test = solver.stop_rule.jammed if solver is not None and solver.stop_rule is not None else None
+    jammed = res["stop_reason"] == "jammed"
+    return {"stopped_jammed": jammed, "certified": bool(res["converged"]),
+            "status": ("jammed and certified" if res["converged"] else "jammed (not certified)") if jammed
+            else None,
+            "kkt_residual": res["kkt_residual"], "max_overlap": res["max_overlap"], "W": res["W"],
+            "test": test if jammed else None}
+
+
 def exit_code(scene, res):
     """0 when certified; under the paper's rule (stop.rule = "eps") also when stop.eps = 0 asked
     for a fixed number of iterations, or when (4.3) fired on a feasible configuration (max
     overlap within stop.overlap: (4.3) can fire where nothing moves, e.g. all centres at one
-    point); 4 otherwise."""
+    point); under stop.rule = "jammed" also when the jammed test stopped the run (its overlap
+    is within stop.overlap: a packing, what the rule asks for); 4 otherwise."""
     if res["converged"]:
+        return EXIT_OK
+    if scene.stop.rule == "jammed" and res["stop_reason"] == "jammed":
         return EXIT_OK
     if scene.stop.rule == "eps" and scene.stop.eps == 0:
         return EXIT_OK

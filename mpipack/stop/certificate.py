@@ -54,8 +54,11 @@ class Certifier:
     """Tracks W over the run and decides whether the current state is certified (collective:
     every input is a reduced value)."""
 
-    def __init__(self, stop):
+    def __init__(self, stop, keep=0):
         self.stop = stop
+        # the history also reaches ``keep`` iterations back when that is longer than the window
+        # (the jammed rule's window, ``stop.rule``: one history for both)
+        self.keep = keep
         self.w_history = collections.deque()  # (iteration, W^n), every iteration
         self.last = None  # the last full check
         self.fit_steps = 0  # multiplier-fit steps of the checks so far
@@ -68,14 +71,15 @@ class Certifier:
         |X^n|^2 while it makes X^{n+1}: figures of iteration n+1 carry W^n)."""
         self.w_history.append((iteration, w))
         # the window only grows forward: older records than the current target are not needed
-        target = iteration - self.window(iteration)
+        target = iteration - max(self.window(iteration), self.keep)
         while len(self.w_history) > 1 and self.w_history[1][0] <= target:
             self.w_history.popleft()
 
-    def w_change(self, iteration, w):
+    def w_change(self, iteration, w, window=None):
         """|W^n - W^{n-w}| / W^n, W^{n-w} the latest record at least a window old; inf while
-        the run is younger than its window."""
-        target = iteration - self.window(iteration)
+        the run is younger than its window. ``window``: iterations, at most
+        max(``window(iteration)``, ``keep``) (default: the certificate's)."""
+        target = iteration - (self.window(iteration) if window is None else window)
         h = self.w_history
         if not h or h[0][0] > target:
             return math.inf
@@ -126,6 +130,15 @@ class Certifier:
         self.last = {"iteration": now,
                      "criteria": self.certificate(solver, now, m, fit=fit, max_steps=budget)}
         return all(c["ok"] for c in self.last["criteria"].values())
+
+    def measured(self, solver, iteration):
+        """The criteria of the current state, ``iteration`` its iteration, with the run's own
+        multipliers (a metrics pass, no fit), kept as the last check (``final`` reports them);
+        the last check's own when one was made at this iteration. Collective."""
+        if self.last is None or self.last["iteration"] != iteration:
+            m, _ = measures.measure(solver, overlap_a=False)
+            self.last = {"iteration": iteration, "criteria": self.certificate(solver, iteration, m, fit=False)}
+        return self.last["criteria"]
 
     def certificate(self, solver, iteration, m, fit=True, max_steps=None):
         """The criteria of the configuration whose ``measure`` figures are m; with ``fit``, the
