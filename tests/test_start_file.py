@@ -229,10 +229,12 @@ def test_check_counts_the_pairs_of_a_file_start(tmp_path):
 
 # ---- bad files ----------------------------------------------------------------------------------
 
-def _sparse_npy(path, rows, cols):
-    from numpy.lib.format import open_memmap
-    m = open_memmap(path, mode="w+", dtype=np.float64, shape=(rows, cols))  # a sparse file
-    del m
+def _header_only_npy(path, rows, cols):
+    """A .npy header that announces (rows, cols) float64, without the data: the reader must
+    refuse it from its header."""
+    from numpy.lib import format as npy
+    with open(path, "wb") as fh:
+        npy.write_array_header_1_0(fh, {"descr": "<f8", "fortran_order": False, "shape": (rows, cols)})
 
 
 BAD = {
@@ -240,6 +242,8 @@ BAD = {
     "missing": ("nope.csv", None, ["no such file"]),
     "binary": ("junk.csv", b"\xff\xfe\x00\x01\x02", ["not a text file"]),
     "truncated npy": ("cut.npy", lambda p: p.write_bytes(_npy_bytes(np.ones((10, 3)))[:90]), ["not a readable .npy"]),
+    "truncated npy data": ("cut2.npy", lambda p: p.write_bytes(_npy_bytes(np.ones((10, 3)))[:-8]), ["not a readable .npy"]),
+    "npy of strings": ("words.npy", lambda p: np.save(p, np.array([["a", "b", "c"]])), ["not numbers"]),
     "foreign hdf5": ("other.h5", "h5", ["not an mpipack"]),
     "empty": ("empty.csv", b"", ["empty file"]),
     "header only": ("head.csv", b"x,y,d\n# nothing\n", ["header only"]),
@@ -250,7 +254,7 @@ BAD = {
     "short row": ("short.csv", b"0,0,1\n1,1,1\n\n2,2\n3,3,1\n", ["line 4", "2 numbers, expected 3"]),
     "not a number": ("word.csv", b"0,0,1\n1,one,1\n", ["line 2", "'one' is not a number"]),
     "dim mismatch": ("three.csv", b"0,0,0,1\n1,1,1,1\n", ["4 columns", "2D has 3"]),
-    "too many rows": ("huge.npy", lambda p: _sparse_npy(p, 10 ** 8 + 1, 3), ["100000001 rows"]),
+    "too many rows": ("huge.npy", lambda p: _header_only_npy(p, 10 ** 8 + 1, 3), ["100000001 rows"]),
 }
 
 

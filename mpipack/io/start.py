@@ -162,20 +162,26 @@ def _is_hdf5(path):
 
 
 def _npy(path, ndim):
-    """A .npy's array as float64, checked for shape before its data are read."""
+    """A .npy's array as float64, its header (shape, type) checked before its data are read."""
+    from numpy.lib import format as npy
     try:
-        m = np.load(path, mmap_mode="r", allow_pickle=False)
+        with open(path, "rb") as fh:
+            version = npy.read_magic(fh)
+            header = npy.read_array_header_1_0 if version == (1, 0) else npy.read_array_header_2_0
+            shape, _, dtype = header(fh)
     except (OSError, ValueError, EOFError) as e:
         raise StartError(f"{path}: not a readable .npy file ({_one_line(e)})") from None
-    if not isinstance(m, np.ndarray) or m.dtype.kind not in "iuf":
-        raise StartError(f"{path}: holds {getattr(m, 'dtype', type(m).__name__)} data, not numbers")
-    shape = m.shape
+    if dtype.kind not in "iuf":
+        raise StartError(f"{path}: holds {dtype} data, not numbers")
     ok = (len(shape) == 2) if ndim == 2 else (len(shape) == 1 or (len(shape) == 2 and shape[1] == 1))
     if not ok:
         want = "(N, dim + 1)" if ndim == 2 else "(N,)"
         raise StartError(f"{path}: an array of shape {shape}, expected {want}")
     _check_count(path, shape[0])
-    return np.array(m, dtype=np.float64)
+    try:
+        return np.asarray(np.load(path, allow_pickle=False), dtype=np.float64)
+    except (OSError, ValueError, EOFError) as e:
+        raise StartError(f"{path}: not a readable .npy file ({_one_line(e)})") from None
 
 
 def _check_count(path, rows):
