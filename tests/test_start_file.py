@@ -305,3 +305,26 @@ def test_a_bad_diameters_file_is_refused_in_one_line(tmp_path, content, words):
     proc = cli(["run", "--quiet", "--out", tmp_path / "o", "--set", 'particles.distribution="file"',
                 "--set", f'particles.file="{tmp_path / "d.txt"}"'], tmp_path)
     assert_one_line_error(proc, "particles.file", *words)
+
+
+def test_a_file_start_restarts_and_a_changed_file_is_refused(run_mpipack, tmp_path):
+    """--restart of a run started from a file re-reads the file: the same numbers continue, changed
+    numbers are refused (exit 2, one line) before anything is written."""
+    x, d = cloud(60, 2)
+    np.save(tmp_path / "s.npy", np.column_stack([x, d]))
+    sets = FILE_START + [f'init.file="{tmp_path / "s.npy"}"', "output.checkpoint_every=50"] + SHORT[:-2] \
+        + ["stop.max_iter=100", "output.progress_every=0"]
+    proc, summary, _ = run_mpipack(1, None, sets, tag="first")
+    assert proc.returncode == 0 and summary["n"] == 60, describe(proc)
+    checkpoint = tmp_path / "first" / "out" / "checkpoint.h5"
+    proc = cli(["run", "--quiet", "--restart", checkpoint, "--set", "stop.max_iter=150", "--out", tmp_path / "again"],
+               tmp_path)
+    assert proc.returncode == 0, describe(proc)
+    again = json.loads((tmp_path / "again" / "summary.json").read_text())
+    assert again["iterations"] == 150 and again["resolved_scene"]["init"]["sha256"] == summary["resolved_scene"]["init"]["sha256"]
+    d[3] *= 1.5
+    np.save(tmp_path / "s.npy", np.column_stack([x, d]))
+    proc = cli(["run", "--quiet", "--restart", checkpoint, "--set", "stop.max_iter=150", "--out", tmp_path / "third"],
+               tmp_path)
+    assert_one_line_error(proc, "init.sha256", "the file changed")
+    assert not (tmp_path / "third").exists()
