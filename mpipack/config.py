@@ -13,6 +13,7 @@ import copy
 import functools
 import dataclasses
 import math
+import os
 import re
 import tomllib
 from dataclasses import dataclass
@@ -22,7 +23,7 @@ from typing import Optional
 
 METHODS = ("daha", "aha", "nap", "nav")
 FORMS = ("S", "NS")
-INIT_KINDS = ("gaussian", "ball", "lattice")
+INIT_KINDS = ("gaussian", "ball", "lattice", "file")
 STOP_RULES = ("certified", "eps", "jammed")
 SCHEDULES = ("fixed", "fire-al")
 # method parameters of the fixed schedule when a scene sets some but not all (the paper's
@@ -60,8 +61,9 @@ DEFAULTS = {
     "n": 2000,
     "seed": 1,
     "particles": {"diameter": 1.0, "diameter_max": None, "distribution": "uniform", "spread": None,
-                  "sizes": None, "fractions": None},
-    "init": {"kind": "gaussian", "sigma": "auto", "fraction": 0.5, "spacing": 1.0, "jitter": 0.0},
+                  "sizes": None, "fractions": None, "file": None, "sha256": None},
+    "init": {"kind": "gaussian", "sigma": "auto", "fraction": 0.5, "spacing": 1.0, "jitter": 0.0,
+             "file": None, "iteration": None, "sha256": None},
     "method": {"name": "daha", "form": "S", "alpha": None, "beta": None, "gamma": None, "c": None,
                "schedule": None, "l_inner": 10, "eps_inner": 1e-9, "tau": 0.1},
     "stop": {"rule": None, "eps": 1e-5, "max_iter": "auto", "max_seconds": 0.0, "overlap": 1e-3,
@@ -157,7 +159,7 @@ def _merge(base, over, prefix=""):
             base[key] = val
 
 
-DISTRIBUTIONS = ("uniform", "mono", "normal", "lognormal", "discrete")
+DISTRIBUTIONS = ("uniform", "mono", "normal", "lognormal", "discrete", "file")
 TRUNCATION = 3.0  # normal and lognormal diameters: within 3 standard deviations of the (log-)normal
 
 
@@ -174,6 +176,11 @@ class Particles:
                truncated to mu +- 3 s
     discrete   ``sizes`` in the proportions ``fractions``, in exact counts: the gids
                [N F_{k-1}, N F_k) (rounded, F the cumulative fractions) have size k
+    file       the diameters of ``file`` (text, one a line, or a 1-D .npy; ``io.start``): with
+               exactly N rows gid k has row k, else row draw(seed, gid) mod rows; or, under
+               init.kind = "file" (``file`` None), the start file's own. ``sha256`` is the
+               digest of the numbers read (``io.start``), recorded by ``load``; the law's
+               figures (range, mean, mean radius powers) are the rows'
     """
     diameter: float
     diameter_max: Optional[float]
@@ -181,6 +188,8 @@ class Particles:
     spread: Optional[float] = None
     sizes: Optional[list] = None
     fractions: Optional[list] = None
+    file: Optional[str] = None
+    sha256: Optional[str] = None
 
     @property
     def d_max(self):
@@ -196,14 +205,32 @@ class Particles:
     def mean_radius_power(self, b):
         """The mean of (d/2)^b over the distribution (the measure of a mean sphere, over
         that of the unit ball)."""
+        if self.distribution == "file":
+            return file_law(self.sha256)[3][b - 1]
         return _radius_powers(self.distribution, self.diameter, self.diameter_max, self.spread,
                               tuple(self.sizes or ()), tuple(self.fractions or ()))[b - 1]
 
 
 def diameter_stats(p):
     """(d_min, d_max, d_mean) of a ``Particles``."""
+    if p.distribution == "file":
+        return file_law(p.sha256)[:3]
     return _diameter_stats(p.distribution, p.diameter, p.diameter_max, p.spread,
                            tuple(p.sizes or ()), tuple(p.fractions or ()))
+
+
+# the figures of the diameters files this process has read: sha256 -> (d_min, d_max, d_mean,
+# (mean (d/2)^1, ^2, ^3)); every Scene is validated (``validate`` reads its file) before use
+_FILE_LAWS = {}
+
+
+def file_law(sha256):
+    """(d_min, d_max, d_mean, radius powers) of the diameters file of this digest."""
+    try:
+        return _FILE_LAWS[sha256]
+    except KeyError:
+        raise SceneError(f"particles.distribution = \"file\": no file of sha256 {sha256} was read "
+                         f"(a scene must come from config.load or from_dict)") from None
 
 
 def _laws(kind, d, d_max, spread, sizes, fractions):
@@ -267,6 +294,9 @@ class Init:
     fraction: float
     spacing: float
     jitter: float
+    file: Optional[str] = None  # init.kind = "file": the start (absolute path; io.start's formats)
+    iteration: Optional[int] = None  # a snapshots file's snapshot (None: the last)
+    sha256: Optional[str] = None  # the digest of the numbers read (io.start), recorded by load
 
 
 @dataclass(frozen=True)
@@ -424,7 +454,7 @@ def from_dict(data):
     """A Scene from a fully populated nested table (``Scene.as_dict`` output), validated."""
     scene = copy.deepcopy(DEFAULTS)
     _merge(scene, data)
-    validate(scene)
+    validate(scene, n_given="n" in data)
     return _freeze(scene)
 
 
@@ -441,15 +471,24 @@ def load(source=None, overrides=(), seed=None, base=None, settings=None):
     optional seed, validated and frozen. With ``base`` (a scene table, e.g. a checkpoint's)
     and no source, the overrides apply to it."""
     scene = copy.deepcopy(DEFAULTS)
+    # n comes from a start file unless given: by a base table, the user's scene file or a
+    # --set / setting (a built-in scene's n is its default)
+    n_given = False
     if base is not None and source is None:
         _merge(scene, base)
+        n_given = "n" in base
     else:
-        _merge(scene, _read("default" if source is None else source))
+        data = _read("default" if source is None else source)
+        if source is not None and (Path(source).suffix == ".toml" or Path(source).exists()):  # _read's test
+            n_given = "n" in data
+            _files_beside(data, Path(source).parent)
+        _merge(scene, data)
     for item in overrides:
         if "=" not in item:
             raise SceneError(f"--set expects key=value, got {item!r}")
         key, text = item.split("=", 1)
         parts = key.strip().split(".")
+        n_given = n_given or key.strip() == "n"
         nested = _parse_value(text.strip())
         for p in reversed(parts):
             nested = {p: nested}
@@ -459,10 +498,20 @@ def load(source=None, overrides=(), seed=None, base=None, settings=None):
         for p in reversed(str(key).strip().split(".")):
             nested = {p: nested}
         _merge(scene, nested)
+        n_given = n_given or str(key).strip() == "n"
     if seed is not None:
         scene["seed"] = seed
-    validate(scene)
+    validate(scene, n_given=n_given)
     return _freeze(scene)
+
+
+def _files_beside(data, folder):
+    """A scene file's relative init.file and particles.file are relative to its folder."""
+    for section in ("init", "particles"):
+        table = data.get(section)
+        if isinstance(table, dict) and isinstance(table.get("file"), str) and table["file"] \
+                and not Path(table["file"]).expanduser().is_absolute():
+            table["file"] = str(folder / table["file"])
 
 
 def _num(scene, dotted, kind=float, positive=True, allow_zero=False, optional=False):
@@ -490,8 +539,9 @@ def _num(scene, dotted, kind=float, positive=True, allow_zero=False, optional=Fa
     return v
 
 
-def validate(scene):
-    """Check types and ranges in place; raises SceneError naming the first bad key."""
+def validate(scene, n_given=True):
+    """Check types and ranges in place; raises SceneError naming the first bad key. With a start
+    file (init.kind = "file") and ``n_given`` False, n is the file's row count."""
     if not isinstance(scene["name"], str) or not scene["name"]:
         raise SceneError("key 'name' must be a non-empty string")
     if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.+-]*", scene["name"]) or ".." in scene["name"]:
@@ -504,6 +554,7 @@ def validate(scene):
     seed = _num(scene, "seed", int, allow_zero=True)
     if seed >= 2 ** 63:
         raise SceneError(f"key 'seed' must be below 2**63, got {seed}")
+    _check_files(scene, n_given)
     d = _num(scene, "particles.diameter")
     dmax = _num(scene, "particles.diameter_max", optional=True)
     if dmax is not None and dmax < d:
@@ -643,9 +694,8 @@ def _check_container(scene):
     if scene["method"]["name"] in ("nap", "nav"):
         raise SceneError(f"key 'container.kind': walls are constraints of DAHA, AHA and the fire-al "
                          f"schedule; method {scene['method']['name']!r} (nested) does not take them yet")
-    p = scene["particles"]
-    d_min, d_max = _diameter_stats(p["distribution"], p["diameter"], p["diameter_max"], p["spread"],
-                                   tuple(p["sizes"] or ()), tuple(p["fractions"] or ()))[:2]
+    law = Particles(**scene["particles"])
+    d_max = law.d_max
     if kind == "box":
         lo, hi = _vector(scene, "lo", dim), _vector(scene, "hi", dim)
         for k in range(dim):
@@ -664,9 +714,7 @@ def _check_container(scene):
                 and c["height"] < d_max:
             raise SceneError(f"key 'container.height' = {c['height']:g} is lower than the largest diameter {d_max:g}")
     # the spheres' measure against what the container can hold at the densest packing
-    spheres = n * _ball_measure(dim) * _radius_powers(p["distribution"], p["diameter"], p["diameter_max"],
-                                                      p["spread"], tuple(p["sizes"] or ()),
-                                                      tuple(p["fractions"] or ()))[dim - 1]
+    spheres = n * _ball_measure(dim) * law.mean_radius_power(dim)
     room = DENSEST[dim] * Container(**c).volume(dim)
     if spheres > room:
         raise SceneError(f"the container is too small: {n} spheres fill {spheres:.4g} (length^{dim}), more than "
@@ -693,8 +741,8 @@ def _check_distribution(scene):
     if kind not in DISTRIBUTIONS:
         raise SceneError(f"key 'particles.distribution' must be one of {', '.join(DISTRIBUTIONS)}, got {kind!r}")
     used = {"uniform": ("diameter_max",), "mono": (), "normal": ("spread",), "lognormal": ("spread",),
-            "discrete": ("sizes", "fractions")}[kind]
-    for key in ("diameter_max", "spread", "sizes", "fractions"):
+            "discrete": ("sizes", "fractions"), "file": ("file", "sha256")}[kind]
+    for key in ("diameter_max", "spread", "sizes", "fractions", "file", "sha256"):
         if p[key] is not None and key not in used:
             raise SceneError(f"key 'particles.{key}' does not apply to particles.distribution = {kind!r}")
     if kind in ("normal", "lognormal"):
@@ -727,8 +775,11 @@ LENGTH_MIN, LENGTH_MAX = 1e-6, 1e9
 def _check_length_scales(scene):
     p, init = scene["particles"], scene["init"]
     dim, n = scene["dim"], scene["n"]
-    d_min, d_max = _diameter_stats(p["distribution"], p["diameter"], p["diameter_max"], p["spread"],
-                                   tuple(p["sizes"] or ()), tuple(p["fractions"] or ()))[:2]
+    if p["distribution"] == "file":
+        d_min, d_max = file_law(p["sha256"])[:2]
+    else:
+        d_min, d_max = _diameter_stats(p["distribution"], p["diameter"], p["diameter_max"], p["spread"],
+                                       tuple(p["sizes"] or ()), tuple(p["fractions"] or ()))[:2]
     lengths = {"particles.diameter": d_min, "particles.diameter_max": d_max,
                # the packed cloud's extent
                "n and particles.diameter (the packing's size)": d_max * n ** (1.0 / dim)}
@@ -740,6 +791,77 @@ def _check_length_scales(scene):
         if not LENGTH_MIN <= v <= LENGTH_MAX:
             raise SceneError(f"key '{key.split(' ')[0]}': length {v:.3g} is outside [{LENGTH_MIN:g}, "
                              f"{LENGTH_MAX:g}] ({key}); rescale the problem (results scale with d)")
+
+
+def _check_files(scene, n_given):
+    """A start file (init.kind = "file") or a diameters file (particles.distribution = "file"):
+    read (``io.start``, one-line errors naming the file), n taken from the start file unless
+    given, paths made absolute, the digest of the numbers recorded (a digest already in the
+    scene, e.g. a checkpoint's, must match: the file has not changed) and the diameters' law
+    registered (``file_law``)."""
+    init, p = scene["init"], scene["particles"]
+    if init["kind"] != "file":
+        for key in ("file", "iteration", "sha256"):
+            if init[key] is not None:
+                raise SceneError(f"key 'init.{key}' applies to init.kind = \"file\" "
+                                 f"(init.kind is {init['kind']!r})")
+        if p["distribution"] == "file":
+            _path(scene, "particles.file")
+            info = _read_start("particles.file", p["file"], lambda s: s.read_diameters(p["file"]))
+            _record(scene, "particles", info)
+        return
+    _path(scene, "init.file")
+    if init["iteration"] is not None:
+        if isinstance(init["iteration"], str):
+            raise SceneError(f"key 'init.iteration' must be a non-negative integer, got {init['iteration']!r}")
+        _num(scene, "init.iteration", int, allow_zero=True)
+    # the diameters are the file's: the particles section keeps its defaults ("file" once resolved)
+    given = [k for k in ("diameter_max", "spread", "sizes", "fractions", "file") if p[k] is not None]
+    if p["distribution"] not in ("uniform", "file") or given:
+        key = "particles.distribution" if p["distribution"] not in ("uniform", "file") else f"particles.{given[0]}"
+        raise SceneError(f"key '{key}': init.kind = \"file\" takes the diameters from init.file; "
+                         f"leave the particles section out")
+    info = _read_start("init.file", init["file"],
+                       lambda s: s.read_start(init["file"], scene["dim"], init["iteration"]))
+    if n_given and scene["n"] != info.rows:
+        raise SceneError(f"key 'n': the scene gives n = {scene['n']}, init.file {init['file']} has "
+                         f"{info.rows} rows; leave n out (it is the file's) or make them agree")
+    scene["n"] = info.rows
+    if not info.extent <= LENGTH_MAX:
+        raise SceneError(f"key 'init.file': {info.source}: a coordinate of {info.extent:.3g}, beyond "
+                         f"{LENGTH_MAX:g}; rescale the problem (results scale with d)")
+    _record(scene, "init", info)
+    p["distribution"] = "file"
+    _record(scene, "particles", info)
+
+
+def _path(scene, dotted):
+    section, key = dotted.split(".")
+    v = scene[section][key]
+    if not isinstance(v, str) or not v.strip():
+        what = "init.kind = \"file\"" if section == "init" else "particles.distribution = \"file\""
+        raise SceneError(f"{what} needs {dotted}: a file's path, got {v!r}")
+    scene[section][key] = os.path.abspath(os.path.expanduser(v))
+
+
+def _read_start(dotted, path, read):
+    from mpipack.io import start
+    try:
+        return read(start)
+    except start.StartError as e:
+        raise SceneError(f"key '{dotted}': {e}") from None
+
+
+def _record(scene, section, info):
+    """The file's digest in scene[section]["sha256"] (checked against one already there) and its
+    diameters' law registered."""
+    table = scene[section]
+    if table["sha256"] is not None and table["sha256"] != info.sha256:
+        raise SceneError(f"key '{section}.sha256': {info.source} holds other numbers than the scene "
+                         f"records (sha256 {info.sha256[:12]}..., recorded {str(table['sha256'])[:12]}...): "
+                         f"the file changed")
+    table["sha256"] = info.sha256
+    _FILE_LAWS[info.sha256] = (info.d_min, info.d_max, info.d_mean, info.radius_powers)
 
 
 # what a restart may change: how the run stops, what it writes, how it splits the work; never

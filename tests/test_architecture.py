@@ -28,7 +28,7 @@ MAY_IMPORT = {
     "cli": ("mpipack.cli", "mpipack.engine", "mpipack.analysis", "mpipack.experiments", "mpipack.io",
             "mpipack.parallel", "mpipack.stop.signals", "mpipack.post") + SHARED,
     "api": ("mpipack.engine.runner", "mpipack.io", "mpipack.parallel.comm", "mpipack.stop.signals") + SHARED,
-    "config": ("mpipack.config",),
+    "config": ("mpipack.config", "mpipack.io.start"),  # a start file's rows and diameters at load
     "scenes": (),
     "errors": (),
 }

@@ -159,6 +159,10 @@ def _start_lines(scene, ranks):
         L.append(f"Gaussian start, sigma = {mem['sigma']:.4g}: each pair's separation is N(0, 2 sigma^2 I)")
     elif kind == "ball":
         L.append("uniform ball start (an upper bound: boundary effects ignored)")
+    elif kind == "file":
+        L.append(f"start from {scene.init.file}"
+                 f"{f' (snapshot {scene.init.iteration})' if scene.init.iteration is not None else ''}: "
+                 f"its pairs counted")
     else:
         L.append(f"lattice start, spacing {scene.init.spacing:g} (jitter ignored)")
     n = scene.n

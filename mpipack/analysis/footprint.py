@@ -5,7 +5,8 @@ The start and the memory
 ------------------------
 Gaussian start: each pair's separation is N(0, 2 sigma^2 I), so P(|X_k - X_l| < r) is the
 regularised lower incomplete gamma function P(b/2, r^2 / (4 sigma^2)). Ball start: (r/R)^b per
-pair (an upper bound). Lattice: the lattice's own shells within r (jitter ignored). Memory per
+pair (an upper bound). Lattice: the lattice's own shells within r (jitter ignored). A start file
+(init.kind = "file"): its pairs closer than r, counted (a k-d tree). Memory per
 rank: ``engine.memory.BYTES_PER_PARTICLE`` per particle plus 12 bytes per pair-row entry (two per pair
 within d_kl + skin), and ``engine.memory.BYTES_PER_ENTRY_PEAK`` per entry while rows are built: the
 run refuses a start whose rows do not fit (exit 2); the check says so first and suggests the
@@ -33,6 +34,10 @@ def pairs_within(scene, r):
     if kind == "ball":
         R = init.ball_radius(scene)
         return total * min(1.0, (r / R) ** b)
+    if kind == "file":
+        from scipy.spatial import cKDTree
+        tree = cKDTree(init.start_file(scene).x)
+        return 0.5 * (float(tree.count_neighbors(tree, r)) - n)  # ordered pairs and self-pairs out
     s = float(scene.init.spacing)
     if r / s > 30:  # many shells: the lattice's density
         per_site = init.unit_ball_measure(b) * r ** b / _lattice_cell_measure(b, s)

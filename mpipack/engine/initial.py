@@ -22,10 +22,16 @@ def _splitmix64(z):
 
 
 @njit(cache=True, inline="always")
+def draw64(seed, gid, stream):
+    """64 random bits (uint64) from (seed, gid, stream)."""
+    z = _splitmix64(np.uint64(seed) * np.uint64(0x100000001B3) + np.uint64(stream))
+    return _splitmix64(z ^ (np.uint64(gid) * np.uint64(0xD6E8FEB86659FD93)))
+
+
+@njit(cache=True, inline="always")
 def uniform(seed, gid, stream):
     """Uniform in (0, 1) from (seed, gid, stream); 53 random bits."""
-    z = _splitmix64(np.uint64(seed) * np.uint64(0x100000001B3) + np.uint64(stream))
-    z = _splitmix64(z ^ (np.uint64(gid) * np.uint64(0xD6E8FEB86659FD93)))
+    z = draw64(seed, gid, stream)
     return (np.float64(z >> np.uint64(11)) + 0.5) * (1.0 / 9007199254740992.0)
 
 
@@ -151,9 +157,12 @@ def positions(scene, gids):
     ball      uniform in the ball of packing fraction init.fraction (``ball_radius``)
     lattice   the N points of a close-packed lattice nearest the origin, spacing
               init.spacing, plus a Gaussian jitter of std init.jitter
+    file      row gid of init.file (``start_file``)
     """
     init = scene.init
     dim = scene.dim
+    if init.kind == "file":
+        return np.array(start_file(scene).x[gids], dtype=np.float64)
     if init.kind == "gaussian":
         return gaussian(scene.seed, gids, dim, gaussian_sigma(scene), np.zeros(dim))
     if init.kind == "ball":
@@ -176,12 +185,61 @@ def uniforms(seed, gids, stream):
     return u
 
 
+def start_file(scene):
+    """The ``io.start.Start`` of the scene's init.file, the numbers the scene was validated with
+    (SceneError, one line, if the file changed since)."""
+    from mpipack.io import start
+    return _checked(scene.init.sha256, "init.file", scene.init.file,
+                    lambda: start.read_start(scene.init.file, scene.dim, scene.init.iteration))
+
+
+def diameters_file(scene):
+    """The ``io.start.Start`` of the scene's particles.file (as ``start_file``)."""
+    from mpipack.io import start
+    return _checked(scene.particles.sha256, "particles.file", scene.particles.file,
+                    lambda: start.read_diameters(scene.particles.file))
+
+
+def _checked(sha256, key, path, read):
+    from mpipack import config
+    from mpipack.io import start
+    try:
+        got = read()
+    except start.StartError as e:
+        raise config.SceneError(f"key '{key}': {e}") from None
+    if got.sha256 != sha256:
+        raise config.SceneError(f"key '{key}': {path} changed since the scene was loaded "
+                                f"(sha256 {got.sha256[:12]}..., loaded {str(sha256)[:12]}...)")
+    return got
+
+
+_FILE_ROW_STREAM = 1001  # the row of a diameters file whose row count is not N
+
+
+@njit(cache=True)
+def file_rows(seed, gids, rows):
+    """The row of a diameters file of ``rows`` rows each gid takes: draw64(seed, gid) mod rows
+    (the bias of the modulo, rows / 2^64, is nil for any file a run can read)."""
+    out = np.empty(gids.shape[0], dtype=np.int64)
+    r = np.uint64(rows)
+    for i in range(gids.shape[0]):
+        out[i] = np.int64(draw64(seed, gids[i], _FILE_ROW_STREAM) % r)
+    return out
+
+
 def scene_diameters(scene, gids):
     """Diameters of the given gids for the scene's particles block (``config.Particles``): each
     a function of (seed, gid), the same on any number of ranks."""
     from mpipack import config
     p = scene.particles
     gids = np.asarray(gids, dtype=np.int64)
+    if p.distribution == "file":
+        if scene.init.kind == "file":  # the start file's own diameters, row = gid
+            return np.array(start_file(scene).diam[gids], dtype=np.float64)
+        d = diameters_file(scene).diam
+        if d.shape[0] == scene.n:
+            return np.array(d[gids], dtype=np.float64)
+        return np.array(d[file_rows(scene.seed, gids, d.shape[0])], dtype=np.float64)
     if p.distribution in ("uniform", "mono"):
         return diameters(scene.seed, gids, float(p.diameter), float(p.d_max))
     if p.distribution == "discrete":
