@@ -74,7 +74,7 @@ DEFAULTS = {
                "snapshots": True, "snapshot_every": 0, "checkpoint_every": 0},
     "container": {"kind": "none", "lo": None, "hi": None, "centre": None, "radius": None,
                   "height": None},
-    "potential": {"kind": "centre", "point": None},
+    "potential": {"kind": "centre", "point": None, "g": None},
 }
 
 
@@ -389,6 +389,24 @@ class Container:
                     3: 4.0 / 3.0 * math.pi * self.radius ** 3}[dim]
         return math.inf
 
+    def bottom(self, dim):
+        """The lowest height (last coordinate) inside: a box's lo, a cylinder's floor, the
+        bottom of a sphere."""
+        if self.kind == "box":
+            return self.lo[dim - 1]
+        if self.kind == "cylinder":
+            return self.centre[2]
+        return self.centre[dim - 1] - self.radius
+
+    def section(self, dim):
+        """The measure of a horizontal cross-section (the floor's: a box's, a cylinder's
+        disc; a sphere's at its equator), length^(b-1)."""
+        if self.kind == "box":
+            return math.prod(h - l for l, h in zip(self.lo[:dim - 1], self.hi[:dim - 1]))
+        if self.kind == "cylinder":
+            return math.pi * self.radius ** 2
+        return {1: 1.0, 2: 2.0 * self.radius, 3: math.pi * self.radius ** 2}[dim]
+
     def middle(self, dim):
         """A point well inside: the box's centre, the cylinder's axis at its middle (an open one:
         a radius above the floor), the sphere's centre."""
@@ -401,7 +419,7 @@ class Container:
         return list(self.centre)
 
 
-POTENTIALS = ("centre", "point")
+POTENTIALS = ("centre", "point", "gravity")
 
 
 @dataclass(frozen=True)
@@ -411,9 +429,14 @@ class Potential:
     centre   the paper's W = 1/(2N) sum_{i<j} |X_i - X_j|^2 = 1/2 sum_i |X_i - Xbar|^2: the
              centre of mass (default)
     point    W = 1/2 sum_i |X_i - P|^2, P = ``point`` (a list of b numbers): a fixed point
+    gravity  W = g sum_i m_i (h_i - h_0), down along the last axis (y in 2D, z in 3D), h the
+             last coordinate, h_0 the container's bottom, m_i = (d_i / d_mean)^b (a sphere of
+             the mean diameter weighs 1); ``g`` (default 1) in units of d_mean and that mass.
+             Needs a container (its floor holds the spheres)
     """
     kind: str = "centre"
     point: Optional[list] = None
+    g: Optional[float] = None
 
 
 _SECTIONS = {"particles": Particles, "init": Init, "method": Method, "stop": Stop,
@@ -654,13 +677,22 @@ def _check_potential(scene):
     pot, dim = scene["potential"], scene["dim"]
     if pot["kind"] not in POTENTIALS:
         raise SceneError(f"key 'potential.kind' must be one of {', '.join(POTENTIALS)}, got {pot['kind']!r}")
+    for key, kinds in (("point", ("point",)), ("g", ("gravity",))):
+        if pot[key] is not None and pot["kind"] not in kinds:
+            raise SceneError(f"key 'potential.{key}' does not apply to potential.kind = {pot['kind']!r}")
     if pot["kind"] == "centre":
-        if pot["point"] is not None:
-            raise SceneError("key 'potential.point' does not apply to potential.kind = \"centre\"")
         return
     if scene["method"]["name"] in ("nap", "nav"):
         raise SceneError(f"key 'potential.kind': method {scene['method']['name']!r} (nested) takes only "
                          f"the centre potential yet")
+    if pot["kind"] == "gravity":
+        if scene["container"]["kind"] == "none":
+            raise SceneError("potential.kind = \"gravity\" needs a container to hold the spheres "
+                             "(container.kind = \"box\", \"cylinder\" or \"sphere\")")
+        if pot["g"] is None:
+            pot["g"] = 1.0
+        _num(scene, "potential.g")
+        return
     v = pot["point"]
     if not isinstance(v, list) or len(v) != dim or not all(
             isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v):

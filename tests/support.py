@@ -63,6 +63,10 @@ def brute_force_figures(d):
     return w, max(float(ov.max()), 0.0)
 
 
+# the kernels' potential argument for the paper's W (``kernels.potential``: no gravity)
+CENTRE = np.zeros(4)
+
+
 def no_walls(n_local):
     """The walls arguments of a kernel without a container (``kernels.walls``): no wall, and
     n_local spheres with no wall multiplier."""

@@ -1,8 +1,8 @@
-"""Containers (``container.kind``) and the point potential (``potential.kind = "point"``): the
-walls' geometry, one sphere pulled against a wall (its exact fixed point and wall force), the
-same packing and wall forces on 1, 2 and 3 ranks, a restart onto another rank count, one-line
-errors for bad keys and for a container too small for its spheres, and old scenes (without the
-new sections) still restart."""
+"""Containers (``container.kind``), the point potential and gravity (``potential.kind``): the
+walls' geometry, one sphere pulled against a wall and one resting on a floor (their exact fixed
+points and wall forces), a single layer on a floor, the same packing on 1, 2 and 3 ranks, a
+restart onto another rank count, one-line errors for bad keys and for a container too small for
+its spheres, and old scenes (without the new sections) still restart."""
 
 import math
 
@@ -67,9 +67,44 @@ def test_one_sphere_pulled_against_a_wall(run_mpipack, form):
 
 
 @pytest.mark.mpi
-@pytest.mark.parametrize("case", ["box-2d", "cylinder-3d"])
+@pytest.mark.parametrize("form", ["S", "NS"])
+def test_one_sphere_on_a_floor(run_mpipack, form):
+    """W = g m h (m = 1: the mean diameter): the sphere rests on the floor, h = d/2, and the
+    floor carries its weight, m g = 2 (g = 2)."""
+    proc, summary, dump = run_mpipack(1, sets=["n=1", f"method.form={form}", "container.kind=box",
+                                               "container.lo=[-5.0, 0.0]", "container.hi=[5.0, 10.0]",
+                                               "potential.kind=gravity", "potential.g=2.0"], dump=True)
+    assert proc.returncode == 0 and summary["converged"] is True, describe(proc)
+    assert abs(dump["x"][0, 1] - 0.5) < 1e-3 and -4.5 <= dump["x"][0, 0] <= 4.5
+    assert summary["W"] == pytest.approx(2.0 * 0.5, rel=2e-3)
+    import mpipack
+    snap = mpipack.read_snapshot(proc.args[proc.args.index("--out") + 1])
+    assert snap.fields["wall_force"][0] == pytest.approx(2.0, rel=1e-3)
+
+
+@pytest.mark.mpi
+def test_a_single_layer_on_a_floor(run_mpipack):
+    """Ten discs of diameter 1 in a box exactly ten wide settle into one row on its floor: the
+    known packing, every centre at height 1/2 and 1 apart (to the overlap tolerance)."""
+    proc, summary, dump = run_mpipack(1, sets=["n=10", "dim=2", "particles.distribution=mono",
+                                               "container.kind=box", "container.lo=[0.0, 0.0]",
+                                               "container.hi=[10.0, 30.0]", "potential.kind=gravity"],
+                                      dump=True)
+    assert proc.returncode == 0 and summary["converged"] is True, describe(proc)
+    x = dump["x"][np.argsort(dump["x"][:, 0])]
+    assert np.abs(x[:, 1] - 0.5).max() < 2e-3, x
+    assert np.abs(x[:, 0] - (np.arange(10) + 0.5)).max() < 1e-2, x
+    assert summary["W"] == pytest.approx(10 * 0.5, rel=2e-3)
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("case", ["box-2d", "cylinder-3d", "gravity-box-2d", "gravity-cylinder-3d"])
 def test_the_same_packing_on_1_2_3_ranks(run_mpipack, case):
-    sets = ["n=150"] + BOX2 if case == "box-2d" else ["n=100"] + CYL3
+    sets = {"box-2d": ["n=150"] + BOX2, "cylinder-3d": ["n=100"] + CYL3,
+            "gravity-box-2d": ["n=150", "potential.kind=gravity", "container.kind=box",
+                               "container.lo=[-5.0, 0.0]", "container.hi=[5.0, 40.0]"],
+            "gravity-cylinder-3d": ["n=150", "dim=3", "potential.kind=gravity", "container.kind=cylinder",
+                                    "container.centre=[0.0, 0.0, 0.0]", "container.radius=2.5"]}[case]
     ref = None
     for ranks in (1, 2, 3):
         proc, summary, dump = run_mpipack(ranks, sets=sets, dump=True, tag=f"np{ranks}")
@@ -87,7 +122,9 @@ def test_the_same_packing_on_1_2_3_ranks(run_mpipack, case):
 
 @pytest.mark.mpi
 def test_restart_onto_another_rank_count(tmp_path):
-    sets = ["n=150", "stop.rule=eps", "stop.eps=0"] + BOX2
+    """Under gravity in a box: the walls' multipliers and W's figures continue bit for bit."""
+    sets = ["n=150", "stop.rule=eps", "stop.eps=0", "potential.kind=gravity", "container.kind=box",
+            "container.lo=[-5.0, 0.0]", "container.hi=[5.0, 40.0]"]
     for d in ("ref", "run"):
         (tmp_path / d).mkdir()
     p_ref, s_ref, d_ref = mpipack_run(1, tmp_path / "ref", None, sets + ["stop.max_iter=1500"], dump=True)
@@ -97,7 +134,7 @@ def test_restart_onto_another_rank_count(tmp_path):
     p2, s2, d2 = mpipack_run(2, tmp_path / "run", None, ["stop.max_iter=1500"], dump=True,
                              extra=["--restart", tmp_path / "run" / "out"])
     assert p2.returncode == 0 and s2["iterations"] == 1500, describe(p2)
-    assert_bitwise_equal(d_ref, d2, "box: 3 ranks to 700, then 2 ranks to 1500")
+    assert_bitwise_equal(d_ref, d2, "gravity box: 3 ranks to 700, then 2 ranks to 1500")
     assert s2["W"] == s_ref["W"]
 
 
@@ -113,7 +150,10 @@ def test_restart_onto_another_rank_count(tmp_path):
     (["container.kind=sphere", "container.centre=[0, 0]", "container.radius=40", "method.name=nap",
       "method.alpha=0.1", "method.beta=0.1"], "nested"),
     (["potential.kind=point"], "needs potential.point"),
-    (["potential.kind=gravity"], "must be one of"),
+    (["potential.kind=magnetic"], "must be one of"),
+    (["potential.kind=gravity"], "needs a container"),
+    (["potential.kind=gravity", "potential.g=-1"] + BOX2 + ["n=100"], "must be positive"),
+    (["potential.g=2"], "does not apply"),
     (["potential.point=[1, 2]"], "does not apply"),
 ])
 def test_bad_container_and_potential_keys(sets, words):

@@ -147,8 +147,8 @@ def kernels_fit_step_without_momentum(fit):
     def kernels(form):
         start, step, gradient = original(form)
 
-        def plain(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, length, beta, r, acc):
-            step(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, length, 0.0, r, acc)
+        def plain(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, length, beta, r, acc):
+            step(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, length, 0.0, r, acc)
         return start, plain, gradient
     return kernels
 

@@ -12,7 +12,7 @@ import zlib
 import numpy as np
 import pytest
 
-from support import no_walls, random_cloud, random_lambda, ref_phi_grad, rows_complete
+from support import CENTRE, no_walls, random_cloud, random_lambda, ref_phi_grad, rows_complete
 
 from mpipack.parallel import exactsum, neighbors
 from mpipack.kernels import daha as kernels
@@ -68,7 +68,7 @@ def run_kernel(form, x, x_prev, diam, offsets, pair_j, pair_lambda, xbar, coeffs
     acc = exactsum.new_accumulator(b + 2)
     maxima = np.zeros(kernels.N_MAX)
     a1, a2, a3, a4 = coeffs
-    n_active = kern(x, x_prev, x_new, n_local, diam, offsets, pair_j, pair_lambda, *no_walls(n_local), xbar,
+    n_active = kern(x, x_prev, x_new, n_local, diam, offsets, pair_j, pair_lambda, *no_walls(n_local), xbar, CENTRE,
                     a1, a2, a3, a4, beta, update_lambda, acc, maxima)
     return x_new, acc, maxima, n_active
 

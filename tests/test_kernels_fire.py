@@ -11,7 +11,7 @@ from mpipack.parallel import exactsum
 from mpipack.kernels import daha as kernels, fire as kernels_fire
 from mpipack.methods import fixed
 
-from support import no_walls, random_cloud, random_lambda, ref_phi_grad, rows_complete
+from support import CENTRE, no_walls, random_cloud, random_lambda, ref_phi_grad, rows_complete
 
 
 def ref_fire_al(form, x, x_prev, diam, lam_prev, xbar, a1, a2, a3, a4, beta, floor, clip,
@@ -86,7 +86,7 @@ def test_fire_kernel_matches_reference(dim, form, case):
     acc = exactsum.new_accumulator(dim + kernels_fire.N_ACC)
     maxima = np.zeros(kernels_fire.N_MAX)
     kern = kernels_fire.fire_al_step(form, dim)
-    n_active = kern(x, x_prev, x_new, n, diam, offsets, pair_j, pair_lambda, *no_walls(n), xbar, p["a1"], p["a2"],
+    n_active = kern(x, x_prev, x_new, n, diam, offsets, pair_j, pair_lambda, *no_walls(n), xbar, CENTRE, p["a1"], p["a2"],
                     p["a3"], p["a4"], p["beta"], p["floor"], p["clip"], p["weighted"], p["vmax"],
                     True, acc, maxima)
     assert np.allclose(x_new, x_ref, rtol=1e-11, atol=1e-12), np.abs(x_new - x_ref).max()
@@ -126,12 +126,12 @@ def test_daha_mode_is_the_paper_kernel(form):
         if name == "paper":
             acc, mx = exactsum.new_accumulator(dim + 2), np.zeros(kernels.N_MAX)
             kernels.multipliers_and_step(form, dim)(x, x_prev, x_new, n, diam, offsets, pair_j, lam,
-                                                    *no_walls(n), xbar,
+                                                    *no_walls(n), xbar, CENTRE,
                                                     a1, a2, a3, a4, 1.3, True, acc, mx)
         else:
             acc, mx = exactsum.new_accumulator(dim + kernels_fire.N_ACC), np.zeros(kernels_fire.N_MAX)
             kernels_fire.fire_al_step(form, dim)(x, x_prev, x_new, n, diam, offsets, pair_j, lam,
-                                                 *no_walls(n), xbar,
+                                                 *no_walls(n), xbar, CENTRE,
                                                  a1, a2, a3, a4, 1.3, 0.0, False, False, 0.0, True, acc, mx)
         out[name] = (x_new, lam)
     assert np.allclose(out["paper"][0], out["fire"][0], rtol=1e-13, atol=1e-13)
@@ -152,7 +152,7 @@ def test_kkt_point_is_a_fixed_point():
         lam = np.full(2, lam_star)
         x_new = np.empty_like(x)
         acc, mx = exactsum.new_accumulator(2 + kernels_fire.N_ACC), np.zeros(kernels_fire.N_MAX)
-        kernels_fire.fire_al_step("S", 2)(x, x, x_new, 2, diam, offsets, pair_j, lam, *no_walls(2), xbar,
+        kernels_fire.fire_al_step("S", 2)(x, x, x_new, 2, diam, offsets, pair_j, lam, *no_walls(2), xbar, CENTRE,
                                           p["a1"], p["a2"],
                                           p["a3"], p["a4"], p["beta"], p["floor"], p["clip"], p["weighted"],
                                           p["vmax"], True, acc, mx)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from conftest import describe
-from support import no_walls
+from support import CENTRE, no_walls
 
 N7 = ["n=7", "init.sigma=1.0", "method.alpha=0.35", "method.beta=1.4", "method.gamma=0.7",
       "stop.rule=eps", "stop.eps=1e-8", "output.metrics_every=20", "output.w_optimum=3"]
@@ -58,7 +58,7 @@ def _two_sphere_kkt(form, r, lam, pen, floor, tol):
     acc = exactsum.new_accumulator(kernels.N_MET_EXACT)
     mx = np.zeros(kernels.N_MET_MAX)
     pressure, contacts = np.zeros(2), np.zeros(2, dtype=np.int32)
-    kernels.pair_metrics(form)(x, 2, diam, np.arange(2), po, pj, pl, *no_walls(2), np.zeros(2), 0.0,
+    kernels.pair_metrics(form)(x, 2, diam, np.arange(2), po, pj, pl, *no_walls(2), np.zeros(2), CENTRE, 0.0,
                                kernels.LAMBDA_FORCE, 1.0, pen, floor, tol, False, acc, mx, pressure, contacts,
                                np.zeros(2), np.empty(0), np.empty(0))
     kkt2, gw2 = exactsum.value(acc, 0), exactsum.value(acc, 1)
@@ -102,7 +102,7 @@ def test_force_imbalance_is_the_net_force_over_the_contact_forces(form):
         acc = exactsum.new_accumulator(kernels.N_MET_EXACT)
         mx = np.zeros(kernels.N_MET_MAX)
         kernels.pair_metrics(form)(x, 2, np.ones(2), np.arange(2), po, pj, np.array([lam, lam]), *no_walls(2),
-                                   np.zeros(2), 0.0, kernels.LAMBDA_STORED, 1.0, 0.0, 0.0, 1e-3, False,
+                                   np.zeros(2), CENTRE, 0.0, kernels.LAMBDA_STORED, 1.0, 0.0, 0.0, 1e-3, False,
                                    acc, mx, np.zeros(2), np.zeros(2, dtype=np.int32), np.zeros(2), np.empty(0),
                                    np.empty(0))
         kkt2, gw2, cf2 = (exactsum.value(acc, k) for k in (kernels.MET_KKT2, kernels.MET_GW2, kernels.MET_CF2))
@@ -134,7 +134,7 @@ def test_net_force_per_sphere_is_its_row_of_the_kkt_residual(form):
     mx = np.zeros(kernels.N_MET_MAX)
     net = np.full(3, -1.0)
     kernels.pair_metrics(form)(x, 3, np.ones(3), np.arange(3), po, pj, np.array([lam, lam]), *no_walls(3),
-                               np.zeros(2), 0.0, kernels.LAMBDA_STORED, 1.0, 0.0, 0.0, 1e-3, False,
+                               np.zeros(2), CENTRE, 0.0, kernels.LAMBDA_STORED, 1.0, 0.0, 0.0, 1e-3, False,
                                acc, mx, np.zeros(3), np.zeros(3, dtype=np.int32), net, np.empty(0), np.empty(0))
     assert net == pytest.approx([r / 4, r / 4, 3.0], rel=1e-12)
     kkt2 = exactsum.value(acc, kernels.MET_KKT2)

@@ -355,3 +355,36 @@ def contain(scene, x, diam):
     if drawn:
         x += np.asarray(c.middle(scene.dim), dtype=np.float64)[None, :]
     return walls.inside(x, diam, walls.walls_of(c, scene.dim))
+
+
+def fill_container(scene, gids, diam):
+    """Positions uniform in the scene's container, each sphere's centre at least its radius
+    inside (an open cylinder up to twice its radius or its bed, whichever is taller), from
+    (seed, gid) (streams 10..17: the same on any rank count): the schedule's step 0 in a
+    container (``methods.fire_al_schedule``), which spreads a dense start over the room the
+    walls leave instead of into a ball."""
+    c, dim = scene.container, scene.dim
+    gids = np.asarray(gids, dtype=np.int64)
+    r = 0.5 * np.asarray(diam, dtype=np.float64)
+    if c.kind == "box":
+        lo, hi = np.asarray(c.lo), np.asarray(c.hi)
+        u = np.stack([uniforms(scene.seed, gids, 16 + k) for k in range(dim)], axis=1)
+        return (lo[None, :] + r[:, None]) + u * ((hi - lo)[None, :] - 2.0 * r[:, None])
+    centre = np.asarray(c.centre, dtype=np.float64)
+    if c.kind == "sphere":
+        unit = uniform_ball(scene.seed, gids, dim, 1.0)
+        return centre[None, :] + unit * (c.radius - r)[:, None]
+    # cylinder (3D): a uniform disc and a uniform height
+    disc = uniform_ball(scene.seed, gids, 2, 1.0) * (c.radius - r)[:, None]
+    top = c.height if c.height is not None else 2.0 * max(c.radius, _bed_height(scene))
+    z = r + uniforms(scene.seed, gids, 19) * (top - 2.0 * r)
+    return np.stack([centre[0] + disc[:, 0], centre[1] + disc[:, 1], centre[2] + z], axis=1)
+
+
+def _bed_height(scene):
+    """The height of the scene's spheres packed at the law's fraction over the container's
+    floor (``fire_al_schedule.scene_law``)."""
+    from mpipack.methods.fire_al_schedule import PACKING_FRACTION
+    ball = {1: 2.0, 2: math.pi, 3: 4.0 / 3.0 * math.pi}[scene.dim]
+    volume = scene.n * ball * scene.particles.mean_radius_power(scene.dim)
+    return volume / (PACKING_FRACTION[scene.dim] * scene.container.section(scene.dim))

@@ -11,7 +11,10 @@ def density_slack(scene, res):
 
 def density_valid(scene, res):
     """A density is a packing's only when the spheres do not overlap beyond the tolerance and
-    the covered measure is at most 1 up to what those overlaps add (``density_slack``)."""
+    the covered measure is at most 1 up to what those overlaps add (``density_slack``). In a
+    container the ball about the centre of mass crosses the walls: no density of that ball."""
+    if scene.container.active:
+        return False
     return res["max_overlap"] <= scene.stop.overlap and res["density"] <= 1.0 + density_slack(scene, res)
 
 
@@ -22,6 +25,9 @@ def reported_density(scene, res):
 
 
 def density_line(scene, res):
+    if scene.container.active:
+        return (f"packing density not reported about the centre of mass (its ball crosses the "
+                f"container's walls): `mpipack post density` gives the fraction inside the container")
     if density_valid(scene, res):
         where = (f"in the ball of radius {res['density_radius']:.3g} (radius of gyration) about the "
                  f"centre of mass")

@@ -32,7 +32,7 @@ from mpipack.engine import rebuild as rebuild_mod
 from mpipack.engine.timers import FORWARD, REDUCE, STEP, PhaseTimers
 from mpipack.errors import NumericalError, TooDenseError
 from mpipack.kernels import daha as kernels
-from mpipack.kernels import walls
+from mpipack.kernels import potential, walls
 from mpipack.methods import for_scene
 from mpipack.parallel import comm as comm_mod
 from mpipack.parallel import domain, exactsum, neighbors
@@ -83,6 +83,9 @@ class Solver:
         self.r_ghost = self.d_max + self.skin
         self.state = State(self.dim, self.n)
         self.state.walls = walls.walls_of(scene.container, self.dim)
+        self.pot = potential.parameters(scene)  # grad W per sphere (``kernels.potential``)
+        self.gravity = scene.potential.kind == "gravity"
+        self.grad_w2 = None  # gravity: |grad W|^2 = g^2 sum m_i^2, a constant (initialise)
         self.partition = domain.Partition.whole_space(self.dim)
         self.plan = comm_mod.GhostPlan.empty()
         self.xbar = np.zeros(self.dim)  # the point W pulls to: Xbar, or potential.point
@@ -205,12 +208,31 @@ class Solver:
         self.rebuild()
         self.xbar, _ = self.centre_of_mass()
 
+    def fill_container(self):
+        """Spread the cloud uniformly over its container (``initial.fill_container``): each
+        sphere to a place drawn from (seed, gid), inside by its radius; collective (a rebuild)."""
+        st, n = self.state, self.state.n_local
+        x = init.fill_container(self.scene, st.gid[:n], st.diam[:n])
+        st.x[:n] = x
+        st.x_prev[:n] = x
+        self.rebuild()
+        self.xbar, _ = self.centre_of_mass()
+
     def centre_of_mass(self):
         """Xbar and W = 1/2 sum |X_i - Xbar|^2 of the current positions (collective)."""
         st = self.state
-        red = Reduction().add_exact("sums", [("x", self.dim), ("xx", 1)]).begin()
+        red = Reduction().add_exact("sums", [("x", self.dim), ("xx", 1)])
+        if self.gravity:
+            red.add_exact("gravity", [("wpot", 1), ("mm", 1)])
+        red.begin()
         kernels.local_sums(st.x, st.n_local, red.acc("sums"))
+        if self.gravity:
+            potential.gravity_sums(st.x, st.diam, st.n_local, self.pot, red.acc("gravity"))
         red.reduce(self.comm)
+        if self.gravity:  # W = g sum m_i (h_i - h_0); xbar (the centre of mass) is not pulled to
+            g = self.pot[potential.POT_G]
+            self.grad_w2 = g * g * red.value("mm")
+            return red.values("x") / self.n, g * red.value("wpot")
         if self.point is not None:  # the point potential: P and W = 1/2 sum |X_i - P|^2
             self.sum_x = red.values("x")
             return self.point.copy(), self.point_potential(red.value("xx"), self.sum_x)
@@ -251,7 +273,9 @@ class Solver:
         self.check_finite(red)
         dx2, xx2 = red.value("dx2"), red.value("xx2")
         max_step = math.sqrt(red.max("step2"))
-        if self.point is None:
+        if self.gravity:  # W^n = g sum m_i (h_i^n - h_0), summed by the pass
+            xbar_next, w = red.values("x") / self.n, self.pot[potential.POT_G] * red.value("wpot")
+        elif self.point is None:
             xbar_next = red.values("x") / self.n
             # W^n = 1/2 sum |X_i^n - Xbar^n|^2 = 1/2 (sum |X_i^n|^2 - N |Xbar^n|^2): free here
             w = 0.5 * (xx2 - self.n * float(xbar @ xbar))
@@ -287,6 +311,8 @@ class Solver:
         a stop request) into ``fig``, which holds W; raises if the cloud diverges."""
         fig.update(max_overlap=red.max("overlap"), active_pairs=red.count("active") // 2,
                    max_local=int(red.max("max_local")), wall=red.max("wall"))
+        if self.gravity:
+            fig["grad_w2"] = self.grad_w2
         r_gyr = math.sqrt(2.0 * max(fig["W"], 0.0) / self.n)
         if r_gyr > self.r_diverge:
             raise NumericalError(

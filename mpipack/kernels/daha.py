@@ -35,6 +35,7 @@ from numba import njit
 from mpipack.parallel import exactsum
 from mpipack.kernels import metrics
 from mpipack.kernels import walls as walls_mod
+from mpipack.kernels import potential
 
 SMOOTH = 0
 NONSMOOTH = 1
@@ -107,13 +108,14 @@ def gradient_scale(form, m, r):
 
 @njit(cache=True, inline="always")
 def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j,
-                          pair_lambda, walls, wall_lambda, xbar, a1, a2, a3, a4, beta, update_lambda,
-                          acc, maxima):
+                          pair_lambda, walls, wall_lambda, xbar, pot, a1, a2, a3, a4, beta,
+                          update_lambda, acc, maxima):
     # form and dim are compile-time constants of each wrapper below: LLVM removes the dead
     # branches and keeps the coordinates in registers (a runtime range(dim) loop does not).
     fbuf = exactsum.staging(acc)
     # c = 2 (and AHA) make the scheme one-step: a2 = 0, and X^{n-1} need not be read at all
     two_step = a2 != 0.0
+    gravity = pot[potential.POT_KIND] == potential.GRAVITY
     xb0 = xbar[0]
     xb1 = xbar[1] if dim > 1 else 0.0
     xb2 = xbar[2] if dim > 2 else 0.0
@@ -173,20 +175,24 @@ def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offse
                 f0 -= g * n0
                 f1 -= g * n1
                 f2 -= g * n2
+        # grad W (``kernels.potential``): X_i - Xbar, or the sphere's weight under gravity
+        p0, p1, p2 = potential.pull(dim, pot, di, xi0, xi1, xi2, xb0, xb1, xb2)
+        if gravity:
+            exactsum.add(fbuf, acc, dim + 2, potential.height_energy(dim, pot, di, xi0, xi1, xi2))
         # (2.10a); also the exact partial sums and the maxima for the fused reduction
-        xn0 = a1 * xi0 + (a2 * x_prev[i, 0] if two_step else 0.0) - a3 * (xi0 - xb0) - f0
+        xn0 = a1 * xi0 + (a2 * x_prev[i, 0] if two_step else 0.0) - a3 * p0 - f0
         x_new[i, 0] = xn0
         exactsum.add(fbuf, acc, 0, xn0)
         dx2 = (xn0 - xi0) * (xn0 - xi0)
         xx2 = xi0 * xi0
         if dim > 1:
-            xn1 = a1 * xi1 + (a2 * x_prev[i, 1] if two_step else 0.0) - a3 * (xi1 - xb1) - f1
+            xn1 = a1 * xi1 + (a2 * x_prev[i, 1] if two_step else 0.0) - a3 * p1 - f1
             x_new[i, 1] = xn1
             exactsum.add(fbuf, acc, 1, xn1)
             dx2 += (xn1 - xi1) * (xn1 - xi1)
             xx2 += xi1 * xi1
         if dim > 2:
-            xn2 = a1 * xi2 + (a2 * x_prev[i, 2] if two_step else 0.0) - a3 * (xi2 - xb2) - f2
+            xn2 = a1 * xi2 + (a2 * x_prev[i, 2] if two_step else 0.0) - a3 * p2 - f2
             x_new[i, 2] = xn2
             exactsum.add(fbuf, acc, 2, xn2)
             dx2 += (xn2 - xi2) * (xn2 - xi2)
@@ -209,9 +215,10 @@ _DOC = """(2.10b) then (2.10a) for one form and dimension; see the module docstr
 
     Shapes: x, x_prev, x_new (n_total, b); diam (n_total,); pair_offsets (n_local+1,);
     pair_j int32 and pair_lambda float64 (n_pairs,); walls (n_walls, 8) and wall_lambda
-    (n_local, n_walls) (``kernels.walls``; n_walls = 0 without a container); xbar (b,);
-    acc int64 (b+2, exactsum.NBINS+1), added to; maxima float64 (N_MAX,), overwritten.
-    Writes x_new[:n_local] and, if update_lambda, pair_lambda and wall_lambda. Returns the
+    (n_local, n_walls) (``kernels.walls``; n_walls = 0 without a container); xbar (b,) and pot
+    (4,) (``kernels.potential``: grad W);
+    acc int64 (b+2, exactsum.NBINS+1), added to (b+3 under gravity: row b+2 sum m_i (h_i - h_0));
+    maxima float64 (N_MAX,), overwritten. Writes x_new[:n_local] and, if update_lambda, pair_lambda and wall_lambda. Returns the
     number of row entries with lambda > 0 (a wall contact counts 2, like a pair's two entries).
     """
 
@@ -219,33 +226,33 @@ _DOC = """(2.10b) then (2.10a) for one form and dimension; see the module docstr
 # One small wrapper per (form, dim), so that only what a scene uses is compiled (and cached).
 # Written out rather than made by a closure factory: numba caches top-level functions only.
 @njit(cache=True)
-def step_s1(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
-    return _multipliers_and_step(SMOOTH, 1, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
+def step_s1(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(SMOOTH, 1, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def step_s2(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
-    return _multipliers_and_step(SMOOTH, 2, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
+def step_s2(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(SMOOTH, 2, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def step_s3(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
-    return _multipliers_and_step(SMOOTH, 3, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
+def step_s3(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(SMOOTH, 3, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def step_ns1(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
-    return _multipliers_and_step(NONSMOOTH, 1, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
+def step_ns1(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(NONSMOOTH, 1, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def step_ns2(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
-    return _multipliers_and_step(NONSMOOTH, 2, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
+def step_ns2(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(NONSMOOTH, 2, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def step_ns3(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx):
-    return _multipliers_and_step(NONSMOOTH, 3, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, upd, acc, mx)
+def step_ns3(x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, upd, acc, mx):
+    return _multipliers_and_step(NONSMOOTH, 3, x, x_prev, x_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, upd, acc, mx)
 
 
 _STEPS = {("S", 1): step_s1, ("S", 2): step_s2, ("S", 3): step_s3,
@@ -429,7 +436,9 @@ LAMBDA_STORED, LAMBDA_UPDATE, LAMBDA_PEEK, LAMBDA_FORCE = 0, 1, 2, 3
 # exact rows: KKT2, GW2, the overlap measure sum_{i<j} |B_i ∩ B_j| (each pair once, by the owner of
 # its lower gid) and the spheres' measure sum_i |B_i|, for the paper's A (Definition 4.1)
 MET_KKT2, MET_GW2, MET_OVERLAP_MEASURE, MET_SPHERE_MEASURE, MET_CF2 = 0, 1, 2, 3, 4
-N_MET_EXACT = 5
+# ... and under gravity W / g = sum m_i (h_i - h_0) (``kernels.potential``; GW2 is |grad W|^2)
+MET_WPOT = 5
+N_MET_EXACT = 6
 MET_OVERLAP, MET_COMPL, MET_LAMBDA, MET_NET = 0, 1, 2, 3
 N_MET_MAX = 4
 
@@ -475,7 +484,7 @@ def wall_multiplier(form, lam, phi, s, di, beta, lambda_mode, pen, lam_floor, co
 
 @njit(cache=True, inline="always")
 def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda, walls,
-                  wall_lambda, xbar, beta, lambda_mode, lam_scale, pen, lam_floor, contact_tol,
+                  wall_lambda, xbar, pot, beta, lambda_mode, lam_scale, pen, lam_floor, contact_tol,
                   measures_a, acc, maxima, pressure, contacts, net_force, pair_force, wall_force):
     dim = x.shape[1]
     keep_pair_force = pair_force.shape[0] > 0
@@ -490,10 +499,19 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
     max_lam = 0.0
     max_net2 = 0.0
     n_active = 0
+    gravity = pot[potential.POT_KIND] == potential.GRAVITY
     for i in range(n_local):
         gw2 = 0.0
+        if gravity:  # grad W = m_i g along the last axis (``kernels.potential``)
+            for k in range(dim):
+                g[k] = 0.0
+            g[dim - 1] = potential.mass(dim, pot, diam[i]) * pot[potential.POT_G]
+            xi0, xi1, xi2 = coordinates(dim, x, i)
+            exactsum.add(fbuf, acc, MET_WPOT, potential.height_energy(dim, pot, diam[i], xi0, xi1, xi2))
+        else:
+            for k in range(dim):
+                g[k] = x[i, k] - xbar[k]
         for k in range(dim):
-            g[k] = x[i, k] - xbar[k]
             gw2 += g[k] * g[k]
         mu = 0.0
         cf = 0.0
@@ -597,23 +615,23 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
 
 
 @njit(cache=True)
-def metrics_s(x, n_local, diam, gid, po, pj, pl, wa, wl, xbar, beta, upd, scale, pen, floor, tol, area, acc,
+def metrics_s(x, n_local, diam, gid, po, pj, pl, wa, wl, xbar, pot, beta, upd, scale, pen, floor, tol, area, acc,
               mx, pressure, contacts, net_force, pair_force, wall_force):
-    return _pair_metrics(SMOOTH, x, n_local, diam, gid, po, pj, pl, wa, wl, xbar, beta, upd, scale, pen, floor,
+    return _pair_metrics(SMOOTH, x, n_local, diam, gid, po, pj, pl, wa, wl, xbar, pot, beta, upd, scale, pen, floor,
                          tol, area, acc, mx, pressure, contacts, net_force, pair_force, wall_force)
 
 
 @njit(cache=True)
-def metrics_ns(x, n_local, diam, gid, po, pj, pl, wa, wl, xbar, beta, upd, scale, pen, floor, tol, area, acc,
+def metrics_ns(x, n_local, diam, gid, po, pj, pl, wa, wl, xbar, pot, beta, upd, scale, pen, floor, tol, area, acc,
                mx, pressure, contacts, net_force, pair_force, wall_force):
-    return _pair_metrics(NONSMOOTH, x, n_local, diam, gid, po, pj, pl, wa, wl, xbar, beta, upd, scale, pen, floor,
+    return _pair_metrics(NONSMOOTH, x, n_local, diam, gid, po, pj, pl, wa, wl, xbar, pot, beta, upd, scale, pen, floor,
                          tol, area, acc, mx, pressure, contacts, net_force, pair_force, wall_force)
 
 
 def pair_metrics(form):
     """The compiled metrics pass for a form (any dimension). Arguments: (x, n_local, diam, gid
     (n_total,), pair_offsets, pair_j, pair_lambda, walls, wall_lambda (``kernels.walls``: the
-    walls count in every figure like pairs), xbar, beta, lambda_mode, lam_scale, pen, lam_floor,
+    walls count in every figure like pairs), xbar, pot (``kernels.potential``), beta, lambda_mode, lam_scale, pen, lam_floor,
     contact_tol (LAMBDA_FORCE only), measures_a (with the
     overlap and sphere measures of the paper's A: the costly part, lens areas), acc (5, NBINS+1), maxima
     (N_MET_MAX,), pressure (n_local,), contacts int32 (n_local,), net_force (n_local,): |g_i|,

@@ -41,33 +41,37 @@ from numba import njit
 from mpipack.parallel import exactsum
 from mpipack.kernels.daha import NONSMOOTH, SMOOTH, constraint, coordinates, gradient_scale, separation
 from mpipack.kernels import walls as walls_mod
+from mpipack.kernels import potential
 
 # exact rows after the b rows of sum X^{n+1}
 ACC_DX2, ACC_XX2, ACC_POWER, ACC_FORCE2 = 0, 1, 2, 3
 N_ACC = 4
+ACC_WPOT = 4  # under gravity only: sum m_i (h_i - h_0) of X^n (``kernels.potential``), every pass
 # maxima
 MAX_STEP2, MAX_OVERLAP, MAX_GAIN, MAX_ROW = 0, 1, 2, 3
 N_MAX = 4
 
 
 @njit(cache=True, inline="always")
-def _coordinate(a1, a2, a3, xi, xp, xb, f):
-    """One coordinate of a sphere's update: G = -(a3 (X_i - Xbar) + F) and the displacement
-    D = (a1 - 1) X^n + a2 X^{n-1} + G, returned as (D, D^2, (X^n)^2, G (X^n - X^{n-1}), G^2),
-    the terms of the reduced sums |D|^2, |X^n|^2, the power G.V and |G|^2."""
-    g = -(a3 * (xi - xb) + f)
+def _coordinate(a1, a2, a3, xi, xp, pw, f):
+    """One coordinate of a sphere's update: G = -(a3 grad W + F) (pw: grad W's coordinate,
+    X_i - Xbar for the centre) and the displacement D = (a1 - 1) X^n + a2 X^{n-1} + G, returned
+    as (D, D^2, (X^n)^2, G (X^n - X^{n-1}), G^2), the terms of the reduced sums |D|^2, |X^n|^2,
+    the power G.V and |G|^2."""
+    g = -(a3 * pw + f)
     d = (a1 - 1.0) * xi + a2 * xp + g
     return d, d * d, xi * xi, g * (xi - xp), g * g
 
 
 @njit(cache=True, inline="always")
 def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda,
-                  walls, wall_lambda, xbar, a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual,
+                  walls, wall_lambda, xbar, pot, a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual,
                   vmax, update_lambda, acc, maxima, all_sums):
     # form and dim are compile-time constants of each wrapper below: LLVM removes the dead
     # branches and keeps the coordinates in scalars (with small arrays indexed by a runtime
     # range(dim) loop the pass took 8 - 10% longer, 3D N = 2000 and 2D N = 8000 states)
     fbuf = exactsum.staging(acc)
+    gravity = pot[potential.POT_KIND] == potential.GRAVITY
     xb0 = xbar[0]
     xb1 = xbar[1] if dim > 1 else 0.0
     xb2 = xbar[2] if dim > 2 else 0.0
@@ -183,18 +187,22 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
             max_gain = gain
         if row > max_row:
             max_row = row
-        # G = -(a3 (X_i - Xbar) + F), D = (a1 - 1) X^n + a2 X^{n-1} + G, per coordinate
-        dd0, dx2, xx2, power, force2 = _coordinate(a1, a2, a3, xi0, x_prev[i, 0], xb0, f0)
+        # G = -(a3 grad W + F), D = (a1 - 1) X^n + a2 X^{n-1} + G, per coordinate; grad W is
+        # X_i - Xbar, or the sphere's weight under gravity (``kernels.potential``)
+        p0, p1, p2 = potential.pull(dim, pot, di, xi0, xi1, xi2, xb0, xb1, xb2)
+        if gravity:
+            exactsum.add(fbuf, acc, dim + ACC_WPOT, potential.height_energy(dim, pot, di, xi0, xi1, xi2))
+        dd0, dx2, xx2, power, force2 = _coordinate(a1, a2, a3, xi0, x_prev[i, 0], p0, f0)
         dd1 = 0.0
         dd2 = 0.0
         if dim > 1:
-            dd1, s_dx, s_xx, s_pw, s_f = _coordinate(a1, a2, a3, xi1, x_prev[i, 1], xb1, f1)
+            dd1, s_dx, s_xx, s_pw, s_f = _coordinate(a1, a2, a3, xi1, x_prev[i, 1], p1, f1)
             dx2 += s_dx
             xx2 += s_xx
             power += s_pw
             force2 += s_f
         if dim > 2:
-            dd2, s_dx, s_xx, s_pw, s_f = _coordinate(a1, a2, a3, xi2, x_prev[i, 2], xb2, f2)
+            dd2, s_dx, s_xx, s_pw, s_f = _coordinate(a1, a2, a3, xi2, x_prev[i, 2], p2, f2)
             dx2 += s_dx
             xx2 += s_xx
             power += s_pw
@@ -239,7 +247,9 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
 _DOC = """One pass of the fire-al step for one form and dimension; see the module docstring.
 
     Arguments: (x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda, walls,
-    wall_lambda (``kernels.walls``; shape (0, 8) and (n_local, 0) without a container), xbar,
+    wall_lambda (``kernels.walls``; shape (0, 8) and (n_local, 0) without a container), xbar, pot
+    (``kernels.potential``: grad W is X - xbar, or the weights under gravity, whose W / g is then
+    summed into row b + ACC_WPOT of acc, in every pass),
     a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual, vmax, update_lambda, acc, maxima,
     all_sums=True); all_sums False: of the exact sums only |X^n|^2 (an L-BFGS gradient pass).
     Shapes as ``kernels.multipliers_and_step``; acc int64 (b+N_ACC, exactsum.NBINS+1), added to;
@@ -250,33 +260,33 @@ _DOC = """One pass of the fire-al step for one form and dimension; see the modul
 # error_model "numpy": no zero-division checks in the pair loop (every divisor is a diameter
 # or a guarded distance); the results are the same bits
 @njit(cache=True, error_model="numpy")
-def fire_s1(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(SMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_s1(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(SMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_s2(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(SMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_s2(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(SMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_s3(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(SMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_s3(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(SMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns1(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(NONSMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_ns1(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(NONSMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns2(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(NONSMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_ns2(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(NONSMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns3(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(NONSMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_ns3(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(NONSMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 _STEPS = {("S", 1): fire_s1, ("S", 2): fire_s2, ("S", 3): fire_s3,

@@ -28,6 +28,7 @@ from mpipack.parallel import exactsum
 from mpipack.kernels.daha import (NONSMOOTH, SMOOTH, constraint, coordinates, entry_multiplier, separation,
                                   wall_multiplier)
 from mpipack.kernels import walls as walls_mod
+from mpipack.kernels import potential
 
 # exact rows: sum_i |r_i|^2 and the restart test's sum over entries of g (m_next - m_prev)
 # (every pair counted twice, in both of its rows)
@@ -136,13 +137,16 @@ def _fista(m, m_prev, g, step, beta):
 
 @njit(cache=True, inline="always")
 def _step(form, x, n_local, c_offsets, c_j, m, m_prev, g, walls, diam, wm, wm_prev, wg, wactive,
-          xbar, step, beta, r, acc):
+          xbar, pot, step, beta, r, acc):
     dim = x.shape[1]
     fbuf = exactsum.staging(acc)
+    xb0 = xbar[0]
+    xb1 = xbar[1] if dim > 1 else 0.0
+    xb2 = xbar[2] if dim > 2 else 0.0
     for i in range(n_local):
-        r0 = x[i, 0] - xbar[0]
-        r1 = x[i, 1] - xbar[1] if dim > 1 else 0.0
-        r2_ = x[i, 2] - xbar[2] if dim > 2 else 0.0
+        xi0, xi1, xi2 = coordinates(dim, x, i)
+        # grad W (``kernels.potential``): X_i - Xbar, or the sphere's weight under gravity
+        r0, r1, r2_ = potential.pull(dim, pot, diam[i], xi0, xi1, xi2, xb0, xb1, xb2)
         for c in range(c_offsets[i], c_offsets[i + 1]):
             new = m[c] - step * g[c]  # the projected gradient step from the point y = m
             if new < 0.0:
@@ -181,13 +185,14 @@ def _step(form, x, n_local, c_offsets, c_j, m, m_prev, g, walls, diam, wm, wm_pr
 
 
 @njit(cache=True)
-def step_s(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, step, beta, r, acc):
-    _step(SMOOTH, x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, step, beta, r, acc)
+def step_s(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r, acc):
+    _step(SMOOTH, x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r, acc)
 
 
 @njit(cache=True)
-def step_ns(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, step, beta, r, acc):
-    _step(NONSMOOTH, x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, step, beta, r, acc)
+def step_ns(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r, acc):
+    _step(NONSMOOTH, x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r,
+          acc)
 
 
 @njit(cache=True, inline="always")
@@ -259,7 +264,7 @@ def fit_kernels(form):
           contact_tol; wm float64 and wactive bool (n_local, n_walls), the same for the walls.
     The walls' arrays (walls, diam, wm, wm_prev, wg, wactive) follow m_prev (step) and m_prev
     (gradient): every operation of a pair contact applied to each wall contact of a sphere.
-    step(x, n_local, c_offsets, c_j, m, m_prev, g, <walls>, xbar, s, beta, r, acc): over the pairs in
+    step(x, n_local, c_offsets, c_j, m, m_prev, g, <walls>, xbar, pot, s, beta, r, acc): over the pairs in
           contact only (``contacts``: c_offsets (n_local+1,) their rows, c_j their partners,
           m, m_prev and g (n_contacts,) per contact), from the point y = m with its gradient
           g: the projected gradient step m_next = max(0, y - s g), then y <- max(0, m_next +

@@ -32,8 +32,15 @@ class Method:
     #: the work of an iteration counts inner iterations (NAP/NAV)
     counts_inner = False
 
+    #: W is gravity's (``kernels.potential``): the step kernel also sums W / g
+    gravity = False
+
     def step_sums(self):
         """Exact fields the step kernel fills, in its row order: [(name, width)]."""
+        return self.kernel_sums() + ([("wpot", 1)] if self.gravity else [])
+
+    def kernel_sums(self):
+        """The step kernel's own exact fields, before gravity's W / g (``step_sums``)."""
         return [("x", self.dim), ("dx2", 1), ("xx2", 1)]
 
     def step_maxima(self):
@@ -93,14 +100,14 @@ class PaperScheme(Method):
     and a kernel ``self.kernel`` of the paper's signature (``kernels.daha``): the multiplier
     update (2.10b) when lambda is not yet the current X's, then the position update."""
 
-    #: the kernel takes the container's walls (``kernels.walls``); the nested kernels do not
-    #: (config refuses a container for NAP and NAV)
+    #: the kernel takes the container's walls (``kernels.walls``) and the potential
+    #: (``kernels.potential``); the nested kernels do not (config refuses both for NAP and NAV)
     takes_walls = True
 
     def kernel_pass(self, solver, x_other, xbar, red, n_local=None, all_sums=True):
         st = solver.state
         n_local = st.n_local if n_local is None else n_local
-        walls = (st.walls, st.wall_lambda) if self.takes_walls else ()
+        walls, pot = ((st.walls, st.wall_lambda), (solver.pot,)) if self.takes_walls else ((), ())
         return self.kernel(st.x, x_other, st.x_new, n_local, st.diam, st.pair_offsets, st.pair_j,
-                           st.pair_lambda, *walls, xbar, *self.coeffs, self.beta, not st.lambda_fresh,
+                           st.pair_lambda, *walls, xbar, *pot, *self.coeffs, self.beta, not st.lambda_fresh,
                            red.acc("step"), red.maxima("step"))

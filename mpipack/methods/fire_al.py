@@ -18,7 +18,8 @@ from mpipack.kernels import fire as kernels_fire
 from mpipack.kernels import lbfgs as kernels_lbfgs
 from mpipack.methods import lbfgs
 from mpipack.methods.base import Method
-from mpipack.methods.fire_al_schedule import FireALSchedule, Phase, Request
+from mpipack.kernels.potential import POT_G
+from mpipack.methods.fire_al_schedule import FireALSchedule, Phase, Request, scene_law
 
 
 class FireAL(Method):
@@ -33,15 +34,17 @@ class FireAL(Method):
 
     def __init__(self, scene):
         self.dim, self.n = scene.dim, scene.n
+        self.gravity = scene.potential.kind == "gravity"
         self.schedule = FireALSchedule(scene.n, scene.dim, scene.particles.d_mean,
-                                       scene.method.form, overlap_tol=scene.stop.overlap)
+                                       scene.method.form, overlap_tol=scene.stop.overlap,
+                                       law=scene_law(scene))
         self.kernel = kernels_fire.fire_al_step(scene.method.form, scene.dim)
         self.coeffs = FireALSchedule.NO_STEP
         self._lbfgs_reduction = None
 
     # ---- the kernel pass ---------------------------------------------------------------------
-    def step_sums(self):
-        return super().step_sums() + [("power", 1), ("force2", 1)]
+    def kernel_sums(self):
+        return super().kernel_sums() + [("power", 1), ("force2", 1)]
 
     def step_maxima(self):
         return super().step_maxima() + [("max_gain", 1), ("max_row", 1)]
@@ -54,7 +57,8 @@ class FireAL(Method):
         # the fire phase updates lambda every pass (its dual steps); the explosion is DAHA
         update = self.schedule.phase == Phase.FIRE or not st.lambda_fresh
         return self.kernel(st.x, x_other, st.x_new, n_local, st.diam, st.pair_offsets, st.pair_j,
-                           st.pair_lambda, st.walls, st.wall_lambda, xbar, *self.coeffs, update, red.acc("step"),
+                           st.pair_lambda, st.walls, st.wall_lambda, xbar, solver.pot, *self.coeffs, update,
+                           red.acc("step"),
                            red.maxima("step"), all_sums)
 
     def step_figures(self, red, fig):
@@ -81,6 +85,8 @@ class FireAL(Method):
         for request in self.schedule.take_pending():
             if request == Request.EQUALISE:  # a dense start made a dilute uniform ball
                 solver.equalise(self.schedule.spread_radius)
+            elif request == Request.FILL:  # ... or spread over the room its container leaves
+                solver.fill_container()
             elif request == Request.RESET_LAMBDA:
                 st.pair_lambda[:] = 0.0
             elif request == Request.RESTART:  # momentum restart: X^{n-1} := X^n
@@ -135,11 +141,14 @@ class FireAL(Method):
         if solver.point is not None:  # W pulls to a fixed point; X^{n+1} is not summed here
             w_point = solver.point_potential(xx2, red.values("qn_x"))
             xbar, solver.sum_x = solver.point.copy(), None
+        elif self.gravity:  # W = g sum m_i (h_i - h_0) of X^n, summed by the gradient pass
+            w_point = solver.pot[POT_G] * red.value("wpot")
         dots = red.values("qn_dots")  # g.S_j, g.Y_j, g.G_OLD, g.g
         solver.moves.settle(math.sqrt(red.max("qn_step2")))
         fig = {
             "xbar": xbar,
-            "W": 0.5 * (xx2 - self.n * float(xbar @ xbar)) if solver.point is None else w_point,
+            "W": 0.5 * (xx2 - self.n * float(xbar @ xbar)) if solver.point is None and not self.gravity
+            else w_point,
             # the change of the last step (X^n - X^{n-1})
             "relative_change": math.sqrt(move2 / xx2) if xx2 > 0 else 0.0,
             "change2": move2,

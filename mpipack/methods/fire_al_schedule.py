@@ -165,6 +165,34 @@ def packing_law(n, dim, d, form):
     return {"radius": radius, "W": w_eq, "lam_bar": lam_bar, "g2": 4.0 * d * d if form == "S" else 1.0}
 
 
+def scene_law(scene):
+    """The law of a scene (a ``config.Scene``; see the module docstring): ``packing_law`` for
+    the free cluster; the same in a container, whose walls keep step 0 from spreading the start
+    (``spread`` False: the explosion separates it in place); under gravity the bed's law.
+
+    Gravity: the spheres settle into a bed of height H = N v / (phi_p A) (v the mean sphere's
+    measure, A the container's floor) over its bottom h_0, so W_eq = g N m H / 2 (m the mean
+    weight); the virial of a KKT point holds with W in place of the trap's (the floor carries
+    the whole weight at h_0: sum_i m_i g (h_i - h_0) = sum_kl lambda_kl grad phi . r_kl), so that
+    lam_bar has the same form; H stands for the radius in the explosion's cap and the fall."""
+    law = packing_law(scene.n, scene.dim, scene.particles.d_mean, scene.method.form)
+    if not scene.container.active:
+        return law
+    law["spread"] = False
+    if scene.potential.kind != "gravity":
+        return law
+    n, dim, d = scene.n, scene.dim, scene.particles.d_mean
+    ball = {1: 2.0, 2: math.pi, 3: 4.0 / 3.0 * math.pi}[dim]
+    mean_power = scene.particles.mean_radius_power(dim)
+    height = n * ball * mean_power / (PACKING_FRACTION[dim] * scene.container.section(dim))
+    weight = mean_power / (0.5 * d) ** dim  # the mean of (d_i / d)^b
+    w_eq = 0.5 * float(scene.potential.g) * n * weight * height
+    contacts = max(1.0, dim * n)
+    law.update(radius=height, W=w_eq,
+               lam_bar=w_eq / (contacts * d * d) if scene.method.form == "S" else 2.0 * w_eq / (contacts * d))
+    return law
+
+
 class Phase(enum.StrEnum):
     """start -> explode -> fire, or start -> fire (the module docstring's steps 1 and 2-3)."""
     START = "start"
@@ -175,6 +203,7 @@ class Phase(enum.StrEnum):
 class Request(enum.StrEnum):
     """A change of the state the schedule asks for before the next pass."""
     EQUALISE = "equalise"          # spread the cloud into a uniform ball (step 0)
+    FILL = "fill"                  # ... or uniformly over its container (step 0 in a container)
     RESET_LAMBDA = "reset_lambda"  # lambda := 0
     RESTART = "restart"            # momentum restart: X^{n-1} := X^n
 
@@ -229,8 +258,11 @@ class FireALSchedule:
     # coefficients of a pass that moves nothing (compiling the kernel at set-up)
     NO_STEP = Coefficients(1.0, 0.0, 0.0, 0.0, 0.0, 0.0, False, False, 0.0)
 
-    def __init__(self, n, dim, d, form, *, overlap_tol):
-        law = packing_law(n, dim, d, form)
+    def __init__(self, n, dim, d, form, *, overlap_tol, law=None):
+        law = law or packing_law(n, dim, d, form)
+        # step 0, the spread into a ball about Xbar; in a container (law "spread" False), a
+        # uniform fill of the container instead (a ball would cross its walls)
+        self.spread = law.get("spread", True)
         # no forced multiplier step while the max overlap (relative to d_kl) is below this;
         # overlap_tol is the scene's stop.overlap
         self.hold_overlap = HOLD_OVERLAP * overlap_tol
@@ -273,7 +305,10 @@ class FireALSchedule:
             s.gain = max(fig["max_gain"], self.one_gain)  # at least one contact's
             if s.phase == Phase.START:
                 s.phase = Phase.EXPLODE if fig["max_overlap"] > OV_START else Phase.FIRE
-                if s.phase == Phase.EXPLODE and SPREAD > 0 and fig["W"] < SPREAD ** 2 * self.w_eq:
+                if s.phase == Phase.EXPLODE and not self.spread:  # a dense start in a container
+                    s.pending = [Request.FILL, Request.RESET_LAMBDA, Request.RESTART]
+                    s.spread = True
+                elif s.phase == Phase.EXPLODE and SPREAD > 0 and fig["W"] < SPREAD ** 2 * self.w_eq:
                     s.pending = [Request.EQUALISE, Request.RESET_LAMBDA, Request.RESTART]
                     s.spread = True
             elif fig["max_overlap"] < OV_END or fig["W"] > W_SWITCH * self.w_eq:
@@ -283,7 +318,9 @@ class FireALSchedule:
                 s.pending = [Request.RESET_LAMBDA, Request.RESTART]
             return
         was_dual = s.dual_now
-        grad_w = math.sqrt(2.0 * max(fig["W"], 0.0))  # W >= 0 up to rounding (N = 1: W = -0.0...)
+        # |grad W| = sqrt(2 W) for the centre and the point (W >= 0 up to rounding: N = 1 gives
+        # W = -0.0...); gravity's is a constant of the scene, in the figures
+        grad_w = math.sqrt(fig["grad_w2"] if "grad_w2" in fig else 2.0 * max(fig["W"], 0.0))
         s.since_dual += 1
         s.dual_now = False
         if s.qn:

@@ -40,6 +40,7 @@ class FixedStep(PaperScheme):
     def __init__(self, scene):
         m = scene.method
         self.name, self.dim = m.name, scene.dim
+        self.gravity = scene.potential.kind == "gravity"
         self.beta = float(m.beta)
         self.coeffs = paper_coefficients(m.name, m.alpha, m.beta, m.gamma, m.c)
         self.kernel = kernels.multipliers_and_step(m.form, scene.dim)

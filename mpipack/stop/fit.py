@@ -51,8 +51,8 @@ def best_kkt(s, mode, pen, lam_floor, gw2, target, max_steps=None):
     s.scene.stop.overlap, starting from the run's own (``kernels.entry_multiplier`` in
     ``mode``, with ``pen`` and ``lam_floor`` for the fire-al schedule's force multipliers).
 
-    s: the ``Solver`` (positions with fresh ghosts, pair rows, xbar); gw2 = ||grad W||^2 =
-    sum_i |X_i - Xbar|^2 (reduced); target: stop as soon as the residual is at most this;
+    s: the ``Solver`` (positions with fresh ghosts, pair rows, xbar, pot); gw2 = ||grad W||^2
+    (reduced: sum_i |X_i - Xbar|^2 for the centre); target: stop as soon as the residual is at most this;
     max_steps: at most this many steps (None: MAX_STEPS; never more). Returns (residual, steps
     taken). Changes nothing in the solver's state.
     """
@@ -84,7 +84,7 @@ def best_kkt(s, mode, pen, lam_floor, gw2, target, max_steps=None):
         """The step from y = m (see ``kernels_fit``), then r and g at the new y and the
         restart test's sum (collective)."""
         red.begin()
-        step(st.x, n_local, c_offsets, c_j, m, m_prev, g, *walls, s.xbar, length, beta, r, red.acc("fit"))
+        step(st.x, n_local, c_offsets, c_j, m, m_prev, g, *walls, s.xbar, s.pot, length, beta, r, red.acc("fit"))
         comm_mod.forward(comm, s.plan, r, n_local)
         gradient(st.x, n_local, c_offsets, c_j, m, m_prev, *walls, length, r, g, red.acc("fit"),
                  red.maxima("fit"))

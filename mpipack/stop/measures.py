@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from mpipack.parallel import comm as comm_mod
-from mpipack.kernels import daha as kernels, metrics
+from mpipack.kernels import daha as kernels, metrics, potential
 from mpipack.parallel import neighbors
 from mpipack.parallel.reduction import Reduction
 from mpipack.parallel.state import BlockState
@@ -50,7 +50,8 @@ def measure(s, finalize=False, empty=False, overlap_a=True, pair_force=None):
     """
     st = s.state
     mode, pen, floor = multiplier_mode(s, finalize)
-    red = Reduction().add_exact("met", [("kkt2", 1), ("gw2", 1), ("lens", 1), ("spheres", 1), ("cf2", 1)]) \
+    red = Reduction().add_exact("met", [("kkt2", 1), ("gw2", 1), ("lens", 1), ("spheres", 1), ("cf2", 1),
+                                        ("wpot", 1)]) \
         .add_max("met", [("overlap", 1), ("complementarity", 1), ("max_lambda", 1), ("max_net_force", 1)]) \
         .add_count("active").begin()
     pressure = np.zeros(st.n_local)
@@ -58,7 +59,7 @@ def measure(s, finalize=False, empty=False, overlap_a=True, pair_force=None):
     net_force = np.zeros(st.n_local)
     wall_force = np.zeros(st.n_local if st.walls.shape[0] else 0)
     n_active = s.metrics_kernel(st.x, 0 if empty else st.n_local, st.diam, st.gid, st.pair_offsets, st.pair_j,
-                                st.pair_lambda, st.walls, st.wall_lambda, s.xbar, s.method.beta, mode, s.method.kkt_lambda_scale, pen, floor,
+                                st.pair_lambda, st.walls, st.wall_lambda, s.xbar, s.pot, s.method.beta, mode, s.method.kkt_lambda_scale, pen, floor,
                                 s.scene.stop.overlap, overlap_a,
                                 red.acc("met"), red.maxima("met"), pressure, contacts, net_force,
                                 np.empty(0) if pair_force is None else pair_force, wall_force)
@@ -69,7 +70,9 @@ def measure(s, finalize=False, empty=False, overlap_a=True, pair_force=None):
     kkt2, gw2, cf2 = red.value("kkt2"), red.value("gw2"), red.value("cf2")
     fig = {
         "max_overlap": red.max("overlap"),
-        "W": 0.5 * gw2,
+        # W: 1/2 sum |X_i - A|^2 (centre, point), or gravity's g sum m_i (h_i - h_0)
+        "W": s.pot[potential.POT_G] * red.value("wpot") if s.gravity else 0.5 * gw2,
+        "grad_w2": gw2,
         "kkt_residual": math.sqrt(kkt2 / gw2) if gw2 > 0 else (0.0 if kkt2 == 0 else math.inf),
         # the same residual relative to the contact forces the spheres carry (scale-free in N:
         # at a KKT point the contact forces grow like the pressure, ~R^2, the pull of W like R)
@@ -90,6 +93,17 @@ def measure(s, finalize=False, empty=False, overlap_a=True, pair_force=None):
     return fig, fields
 
 
+def _radius_of_gyration(s):
+    """(sqrt(sum |X_i - Xbar|^2 / N), Xbar): the radius of gyration about the centre of mass
+    and that centre (collective)."""
+    st = s.state
+    red = Reduction().add_exact("sums", [("x", s.dim), ("xx", 1)]).begin()
+    kernels.local_sums(st.x, st.n_local, red.acc("sums"))
+    red.reduce(s.comm)
+    xbar = red.values("x") / s.n
+    return math.sqrt(max(red.value("xx") / s.n - float(xbar @ xbar), 0.0)), xbar
+
+
 def multiplier_mode(s, finalize=False):
     """(lambda_mode, pen, lam_floor): which multipliers are those of the current X (see
     ``measure``; the method's ``multipliers``): pen and lam_floor are the fire-al schedule's
@@ -104,7 +118,7 @@ def best_kkt(s, fig, target, max_steps=None):
     fit steps). Collective; changes nothing in the state."""
     from mpipack.stop import fit
     mode, pen, floor = multiplier_mode(s)
-    return fit.best_kkt(s, mode, pen, floor, 2.0 * fig["W"], target, max_steps)
+    return fit.best_kkt(s, mode, pen, floor, fig["grad_w2"], target, max_steps)
 
 
 def finish(s):
@@ -113,10 +127,12 @@ def finish(s):
     # DAHA/AHA hold lambda^{n-1}: one (2.10b) pass makes it lambda^n; NAP/NAV end every
     # outer iteration with fresh multipliers
     fig, _ = measure(s, finalize=True)
-    r_gyr = fig.pop("radius_of_gyration")
+    r_gyr, centre = fig.pop("radius_of_gyration"), s.xbar
+    if s.gravity or s.point is not None:  # about the centre of mass, not what W pulls to
+        r_gyr, centre = _radius_of_gyration(s)
     radius = r_gyr if r_gyr > 0 else s.d_max
     red = Reduction().add_exact("cover", [("cover", 1)]).begin()
-    metrics.covered_measure(s.state.x, s.state.diam, s.state.n_local, s.xbar,
+    metrics.covered_measure(s.state.x, s.state.diam, s.state.n_local, centre,
                             np.array([radius]), red.acc("cover"))
     fig["density"] = red.reduce(s.comm).value("cover") / metrics.ball_measure(s.dim, radius)
     fig["density_radius"] = float(radius)

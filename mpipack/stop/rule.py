@@ -187,9 +187,9 @@ def make_watchdog(solver, scene):
     stop = scene.stop
     if not stop.watchdog:
         return None
-    from mpipack.methods.fire_al_schedule import packing_law
+    from mpipack.methods.fire_al_schedule import scene_law
     method = solver.method
-    law = packing_law(solver.n, solver.dim, scene.particles.d_mean, scene.method.form)
+    law = scene_law(scene)
     return watchdog_mod.Watchdog(solver.n, solver.r_natural, law["lam_bar"] / method.kkt_lambda_scale,
                                  stop.overlap,
                                  stall=method.watch_stall and not (stop.rule == "eps" and stop.eps == 0),
