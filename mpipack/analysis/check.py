@@ -88,6 +88,16 @@ def report_lines(scene, ranks):
                  "largest Gershgorin row of the augmented Lagrangian, momentum restarted when the power "
                  "turns negative); the explosion of a dense start uses the gamma term's CFL bound at the "
                  "packing law's multipliers (mpipack/methods/fire_al.py).")
+        if scene.potential.kind == "gravity":
+            from mpipack.methods.fire_al_schedule import scene_law
+            law = scene_law(scene)
+            L.append(f"Under gravity the law is the bed's: height H = {law['radius']:.4g} over the floor at the "
+                     f"law's packing fraction, W_eq = g N m H / 2 = {law['W']:.4g}, mean multiplier "
+                     f"{law['lam_bar']:.4g} (the virial identity with the floor carrying the weight; "
+                     f"fire_al_schedule.scene_law); the walls' rows count in the Gershgorin bound like pairs'.")
+        elif scene.container.active:
+            L.append("In a container the walls' rows count in the Gershgorin bound like pairs', and a dense "
+                     "start is first spread over the container (fire_al_schedule.scene_law).")
         L.append(f"Verdict: STABLE by construction ({tag}, N = {scene.n}, dim {scene.dim}; schedule fire-al)")
         start, mem = _start_lines(scene, ranks)
         return stable, L + start, mem
@@ -137,6 +147,11 @@ def report_lines(scene, ranks):
                      f"with no c < 2 tried (research). Not part of the verdict")
         L.append("  the packed-state figures are estimates calibrated on packings made by mpipack run (see "
                  "`mpipack.analysis.check`); two free spheres bound nothing for N > 2")
+        if scene.container.active or scene.potential.kind != "centre":
+            L.append(f"  these estimates are those of the paper's W (the trap); with potential.kind = "
+                     f"{scene.potential.kind!r} and container.kind = {scene.container.kind!r} they are a guide "
+                     f"only: a wall's row adds at most a pair's, and gravity's W has no curvature (its term in "
+                     f"the bound is alpha^2 x 0); the fire-al schedule needs no such estimate")
     margin = _margin_lines(scene, stable)
     basis = ("two free spheres, the scheme as it runs" if scene.n == 2 else
              "the scheme linearised at the close-packed cluster" if rep["packed"] is None and scene.n > 2 else

@@ -89,6 +89,7 @@ class FireAL(Method):
                 solver.fill_container()
             elif request == Request.RESET_LAMBDA:
                 st.pair_lambda[:] = 0.0
+                st.wall_lambda[:] = 0.0
             elif request == Request.RESTART:  # momentum restart: X^{n-1} := X^n
                 st.x_prev[:st.n_local] = st.x[:st.n_local]
         self.coeffs = self.schedule.coefficients()
