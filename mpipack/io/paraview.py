@@ -107,7 +107,7 @@ if network is not None:
 container = os.path.join(HERE, CONTAINER)
 if os.path.exists(container):  # the walls (mpipack's container.vtu): outline or translucent surface
     walls = Show(OpenDataFile(container), view)
-    ColorBy(walls, None)
+    walls.ColorArrayName = ["POINTS", ""]  # one colour
     walls.AmbientColor = walls.DiffuseColor = [0.45, 0.55, 0.75]
     walls.LineWidth, walls.PointSize = 3.0, 10.0
     if not flat:
