@@ -173,9 +173,7 @@ class Analysis:
             summary["axis_profile"] = {"axis": "yz"[dim - 2], "slab_height": d, "slabs": k, "floor": z0, "top": z1,
                                        "phi_min": float(prof.min()), "phi_max": float(prof.max())}
         edges = np.arange(box.WALL_RANGE_D * box.WALL_BINS_PER_D + 1) * (d / box.WALL_BINS_PER_D)
-        covered, centres = box.wall_profile(self.comm, c, dim, x, diam, edges)
-        shell = np.array([box.inner_measure(c, dim, a, top) - box.inner_measure(c, dim, b, top)
-                          for a, b in zip(edges[:-1], edges[1:])])
+        covered, shell, centres = box.wall_profile(self.comm, c, dim, x, diam, edges, top)
         with np.errstate(divide="ignore", invalid="ignore"):
             prof = np.where(shell > 0, covered / np.where(shell > 0, shell, 1.0), np.nan)
         mid = 0.5 * (edges[1:] + edges[:-1]) / d
@@ -183,14 +181,14 @@ class Analysis:
         q = int(np.nanargmax(np.where(first & np.isfinite(prof), prof, -np.inf)))
         qc = int(np.argmax(np.where(first, centres, -1)))
         summary["wall_profile"] = {"bin_over_d": 1.0 / box.WALL_BINS_PER_D, "range_over_d": box.WALL_RANGE_D,
-                                   "quadrature": f"{box.GRID} cells per diameter",
+                                   "pooled": "each wall's slabs (shells) of its own distance, summed over the walls",
                                    "first_peak_t_over_d": float(mid[q]), "first_peak_phi": float(prof[q]),
                                    "centres_first_peak_t_over_d": float(mid[qc]),
                                    "centres_within_range": int(centres.sum())}
         parts["wall"] = ({"t_from": edges[:-1], "t_to": edges[1:], "t_over_d": mid, "covered": covered,
                           "shell": shell, "phi": prof, "centres": centres},
-                         {"x": mid, "y": prof, "xlabel": "distance from the nearest wall / d",
-                          "ylabel": "covered fraction", "bars": centres})
+                         {"x": mid, "y": prof, "xlabel": "distance from the wall / d",
+                          "ylabel": "covered fraction (pooled over the walls)", "bars": centres})
         return summary, parts
 
     def without_rattlers(self, gap=1e-3):

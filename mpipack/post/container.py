@@ -47,10 +47,8 @@ from mpipack.parallel import exactsum
 from . import halo
 
 QUADRATURE = 64          # Gauss-Legendre nodes of a cylinder side's cut
-GRID = 16                # the wall profile's quadrature cells per diameter
 WALL_BINS_PER_D = 10     # the wall profile's bins per mean diameter
 WALL_RANGE_D = 5         # ... over this many mean diameters from the wall
-CHUNK = 256              # spheres per block of the wall profile's quadrature
 
 
 def of_scene(scene, dim):
@@ -93,16 +91,32 @@ def cap(dim, r, h):
     return h
 
 
-def _lens_area(a, big, d):
-    """Area of the intersection of discs of radii a and big whose centres are d apart."""
+def _segment(rho, theta):
+    """The area of a disc of radius rho beyond a chord seen under the half angle theta from its
+    centre: rho^2 (theta - sin theta cos theta); a series for small theta (no cancellation)."""
+    if theta < 0.1:
+        x = 2.0 * theta
+        x2 = x * x
+        return rho * rho * x * x2 * (1.0 / 12.0 - x2 * (1.0 / 240.0 - x2 * (1.0 / 10080.0 - x2 * (
+            1.0 / 725760.0 - x2 / 79833600.0))))
+    return rho * rho * (theta - math.sin(theta) * math.cos(theta))
+
+
+def _outside_area(a, big, d):
+    """The area of the disc of radius a whose centre is d from the origin outside the circle
+    of radius big about the origin: the disc's segment beyond the circles' common chord less
+    the circle's segment beyond it, each small where the other is (no cancellation)."""
     if d >= a + big:
+        return math.pi * a * a
+    if d + a <= big:
         return 0.0
-    if d <= abs(big - a):
-        return math.pi * min(a, big) ** 2
-    c1 = max(-1.0, min(1.0, (d * d + a * a - big * big) / (2.0 * d * a)))
-    c2 = max(-1.0, min(1.0, (d * d + big * big - a * a) / (2.0 * d * big)))
-    k = (-d + a + big) * (d + a - big) * (d - a + big) * (d + a + big)
-    return a * a * math.acos(c1) + big * big * math.acos(c2) - 0.5 * math.sqrt(max(k, 0.0))
+    if d + big <= a:
+        return math.pi * (a * a - big * big)
+    u = (a - (d - big)) * (a + (d - big)) / (2.0 * d)   # big - x_c, x_c the chord's abscissa
+    y = math.sqrt(max(u * (2.0 * big - u), 0.0))        # the chord's half length
+    x_c = big - u
+    e = ((big - d) * (big + d) - a * a) / (2.0 * d)     # x_c - d
+    return max(_segment(a, math.atan2(y, e)) - _segment(big, math.atan2(y, x_c)), 0.0)
 
 
 _NODES = None
@@ -118,18 +132,26 @@ def _nodes():
 
 def cylinder_cut(r, rho, big):
     """The part of a ball of radius r, centre rho from the axis, outside the cylinder of
-    radius big (3D): 2 int_0^z0 (pi a(z)^2 - lens(a(z), big, rho)) dz, a = sqrt(r^2 - z^2)."""
+    radius big (3D): 2 int_0^r A(z) dz, A(z) the area of the slice's disc
+    (a = sqrt(r^2 - z^2)) outside the circle. A vanishes for a <= s = big - rho (s > 0) and
+    is the whole disc for a <= -s (s < 0, closed form there); each smooth piece by Gauss-Legendre
+    after z = z0 (1 - t^2) (z0 where the piece ends: A ~ (z0 - z)^(3/2) there)."""
+    if big <= 0.0:
+        return 4.0 / 3.0 * math.pi * r ** 3
     s = big - rho
     if s >= r:
         return 0.0
-    z0 = math.sqrt(r * r - s * s) if s > 0 else r
+    z0 = math.sqrt(r * r - s * s) if abs(s) < r else 0.0
+    whole = 0.0
+    if s < 0:  # z in [z0, r]: the slice lies wholly outside
+        whole = math.pi * ((r * r * r - r ** 3 / 3.0) - (r * r * z0 - z0 ** 3 / 3.0))
     t, w = _nodes()
     total = 0.0
     for tk, wk in zip(t.tolist(), w.tolist()):
         z = z0 * (1.0 - tk * tk)
         a = math.sqrt(max(r * r - z * z, 0.0))
-        total += wk * 2.0 * z0 * tk * (math.pi * a * a - _lens_area(a, big, rho))
-    return 2.0 * total
+        total += wk * 2.0 * z0 * tk * _outside_area(a, big, rho)
+    return 2.0 * (total + whole)
 
 
 def inside_volumes(c, dim, x, diam):
@@ -209,6 +231,8 @@ def axis_range(c, dim, top_of_spheres):
 def _slab_primitive(dim, r, u):
     """int_{-r}^{u} of the ball's slice measure (u clipped to [-r, r])."""
     u = min(max(u, -r), r)
+    if dim == 1:
+        return u + r
     if dim == 3:
         return math.pi * (r * r * u - u ** 3 / 3.0) + 2.0 * math.pi * r ** 3 / 3.0
     return u * math.sqrt(max(r * r - u * u, 0.0)) + r * r * math.asin(u / r) + 0.5 * math.pi * r * r
@@ -245,35 +269,70 @@ def axis_profile(comm, c, dim, x, diam, vol, side, edges):
     return np.array([exactsum.value(acc, q) for q in range(len(edges) - 1)])
 
 
-def _unit_grid(dim):
-    """(offsets (g, b) in the unit ball, cell centres of a GRID^b grid of [-1, 1]^b)."""
-    axis = (np.arange(GRID) + 0.5) * (2.0 / GRID) - 1.0
-    pts = np.stack(np.meshgrid(*([axis] * dim), indexing="ij"), axis=-1).reshape(-1, dim)
-    return pts[(pts * pts).sum(axis=1) <= 1.0]
+def part_inside(c, w, dim, r, s_iw, t):
+    """G_w(t) = |B_i ∩ {p : s_w(p) >= t}|: the part of a ball (radius r, centre s_iw inside wall
+    w) at least t inside that wall (exact: a slab's primitive, a sphere's lens; a cylinder
+    side's by ``cylinder_cut``)."""
+    row = c.walls[w]
+    if row[0] == wall_rows.PLANE:
+        return metrics.ball_measure(dim, r) - _slab_primitive(dim, r, t - s_iw)
+    big = float(row[4])
+    if row[0] == wall_rows.CYLINDER:
+        return metrics.ball_measure(dim, r) - cylinder_cut(r, big - s_iw, big - t)
+    inner = big - t
+    return metrics.intersection(dim, big - s_iw, r, inner) if inner > 0 else 0.0
+
+
+def wall_inner_measure(c, dim, w, t, top=None):
+    """H_w(t) = |C ∩ {p : s_w(p) >= t}|: the container's points at least t inside wall w."""
+    row = c.walls[w]
+    if c.kind == "box":
+        k = int(np.argmax(np.abs(row[1:4])))
+        return max(float(c.hi[k]) - float(c.lo[k]) - t, 0.0) * math.prod(
+            float(c.hi[j]) - float(c.lo[j]) for j in range(dim) if j != k)
+    if c.kind == "cylinder":
+        height = float(c.height) if c.height is not None else top - float(c.centre[2])
+        if row[0] == wall_rows.CYLINDER:
+            return math.pi * max(float(c.radius) - t, 0.0) ** 2 * height
+        return math.pi * float(c.radius) ** 2 * max(height - t, 0.0)
+    return metrics.ball_measure(dim, max(float(c.radius) - t, 0.0))
 
 
 def wall_profile(comm, c, dim, x, diam, edges, top=None):
-    """(covered (K,) exact sums of each sphere's part of the shells edges_q <= t < edges_q+1,
-    centres (K,) int the histogram of the centres' distance to the nearest wall)."""
+    """The profile from the walls, pooled over the walls: (covered (K,), shell (K,), centres
+    (K,) int) with covered_q = sum_w sum_i |B_i ∩ {edges_q <= s_w < edges_q+1}| (exact sums),
+    shell_q = sum_w |C ∩ {edges_q <= s_w < edges_q+1}| and centres_q = #{(i, w) : edges_q <=
+    s_iw < edges_q+1}. A point near two walls counts for each; a ball's part beyond another
+    wall (its cut, at most ``inside_volumes``' side cut) is not taken out."""
     nbins = len(edges) - 1
     width = float(edges[1] - edges[0])
-    unit = _unit_grid(dim)
     r = 0.5 * diam
-    s = gaps(c.walls, x).min(axis=1) if len(diam) else np.zeros(0)
+    s = gaps(c.walls, x) if len(diam) else np.zeros((0, c.walls.shape[0]))
     centres = np.zeros(nbins, np.int64)
-    kc = np.floor(s / width).astype(np.int64) if len(s) else np.zeros(0, np.int64)
-    ok = (kc >= 0) & (kc < nbins)
-    centres += np.bincount(kc[ok], minlength=nbins)[:nbins]
-    near = np.flatnonzero(s - r < edges[-1])
-    contrib = np.zeros((len(near), nbins))
-    for start in range(0, len(near), CHUNK):
-        rows = near[start:start + CHUNK]
-        for j, i in enumerate(rows):
-            p = x[i][None, :] + r[i] * unit
-            t = gaps(c.walls, p).min(axis=1)
-            k = np.floor(t / width).astype(np.int64)
-            good = (t >= 0) & (k < nbins)
-            counts = np.bincount(k[good], minlength=nbins)[:nbins]
-            contrib[start + j] = counts * (metrics.ball_measure(dim, float(r[i])) / len(unit))
-    covered = halo.exact_totals(comm, [contrib[:, q] for q in range(nbins)])
-    return np.array(covered), halo.total(comm, centres)
+    rows, cols, vals = [], [], []
+    for w in range(c.walls.shape[0]):
+        kc = np.floor(s[:, w] / width).astype(np.int64)
+        ok = (s[:, w] >= 0) & (kc < nbins)
+        centres += np.bincount(kc[ok], minlength=nbins)[:nbins]
+        for i in np.flatnonzero(s[:, w] - r < edges[-1]):
+            ri, si = float(r[i]), float(s[i, w])
+            q0 = max(int(np.searchsorted(edges, si - ri, side="right")) - 1, 0)
+            q1 = min(int(np.searchsorted(edges, si + ri, side="left")), nbins)
+            g = [part_inside(c, w, dim, ri, si, float(edges[q])) for q in range(q0, q1 + 1)]
+            for q in range(q0, q1):
+                rows.append(i)
+                cols.append(q)
+                vals.append(max(g[q - q0] - g[q - q0 + 1], 0.0))
+    cols, vals = np.asarray(cols, np.int64), np.asarray(vals, np.float64)
+    order = np.argsort(cols, kind="stable")
+    cols, vals = cols[order], vals[order]
+    cuts = np.searchsorted(cols, np.arange(nbins + 1))
+    acc = exactsum.new_accumulator(nbins)
+    for q in range(nbins):
+        exactsum.accumulate(np.ascontiguousarray(vals[cuts[q]:cuts[q + 1]]), acc, q)
+    acc = comm.allreduce(acc)
+    covered = np.array([exactsum.value(acc, q) for q in range(nbins)])
+    shell = np.array([sum(wall_inner_measure(c, dim, w, float(edges[q]), top)
+                          - wall_inner_measure(c, dim, w, float(edges[q + 1]), top) for w in range(c.walls.shape[0]))
+                      for q in range(nbins)])
+    return covered, shell, halo.total(comm, centres)
