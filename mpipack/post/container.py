@@ -26,14 +26,13 @@ Axis profile      (box, cylinder; 2D and 3D) slabs of height d_mean along the la
                   (exact: pi (r^2 u - u^3/3) in 3D, u sqrt(r^2 - u^2) + r^2 asin(u/r) in 2D,
                   clipped to the floor and lid) less the side walls' cuts, shared by the slabs
                   in proportion to the sphere's part in each, over |C ∩ slab|.
-Wall profile      phi(t), t the distance of a point from the nearest wall (for these convex
-                  containers, from the boundary), bins of d_mean/10 over t < 5 d_mean: each
-                  sphere's part in the shell from a grid quadrature (GRID^b cells of the
-                  sphere's cube, those in the ball each weighing |B_i| / their count), over the
-                  shell's exact measure |C_t1| - |C_t2| (C_t = the points at least t inside:
-                  prod (L_k - 2 t); pi (R - t)^2 (H - 2 t) (open: the height to the top less
-                  t); |B(c, R - t)|). Also the centres' histogram by distance to the nearest
-                  wall: the layering of the wall.
+Wall profile      phi(t), t a point's distance inside a wall, bins of d_mean/10 over t < 5 d_mean,
+                  each wall's own and pooled over the walls: phi = sum_w sum_i |B_i ∩ {t_1 <=
+                  s_w < t_2}| / sum_w |C ∩ {t_1 <= s_w < t_2}|, the balls' parts exact (a
+                  slab's primitive for a plane, ``cylinder_cut`` for a cylinder's side, the
+                  lens for a sphere), the shells' measures closed forms (``wall_inner_measure``).
+                  A point near two walls counts for each. Also the centres' histogram of
+                  s_iw (pooled): the layering of the wall.
 """
 
 import math
@@ -198,17 +197,6 @@ def measure(c, dim, top=None):
     if c.kind == "cylinder":
         return math.pi * float(c.radius) ** 2 * (float(c.height) if c.height is not None else top - float(c.centre[2]))
     return metrics.ball_measure(dim, float(c.radius))
-
-
-def inner_measure(c, dim, t, top=None):
-    """|C_t|: the measure of the points at least t inside every wall."""
-    if c.kind == "box":
-        return math.prod(max(float(h) - float(l) - 2.0 * t, 0.0) for l, h in zip(c.lo, c.hi))
-    if c.kind == "cylinder":
-        rr = max(float(c.radius) - t, 0.0)
-        hh = float(c.height) - 2.0 * t if c.height is not None else top - float(c.centre[2]) - t
-        return math.pi * rr * rr * max(hh, 0.0)
-    return metrics.ball_measure(dim, max(float(c.radius) - t, 0.0))
 
 
 def cross_section(c, dim):
