@@ -120,6 +120,9 @@ def step_each(s, n, fn):
 # 2026-11-27): the fast lane, pytest -m "not slow", leaves them out (about 3 minutes instead of
 # 13); CI runs everything. The Slurm tests mark themselves (tests/test_jobs.py).
 SLOW = {
+    "tests/test_container_files.py::test_a_run_writes_it_once_and_overwrite_removes_it",
+    "tests/test_container_files.py::test_view_py_renders_the_run_with_its_container",
+    "tests/test_post_container.py::test_a_real_container_run_the_same_on_1_2_3_ranks",
     "tests/test_container.py::test_the_same_packing_on_1_2_3_ranks",
     "tests/test_container.py::test_restart_onto_another_rank_count",
     "tests/test_api.py::test_keyword_overrides_and_options",

@@ -13,6 +13,7 @@ Run folder (``--out``, default mpipack-out/<scene name>):
                      snapshots_contacts.xmf: its contact network (the force chains)
     view.py          a ParaView script showing them: pvbatch view.py --png view.png (headless:
                      under xvfb-run, io/paraview.py)
+    container.vtu    the container's surface (a run with a container; io/container_mesh.py)
     checkpoint.h5    the last checkpoint: everything to continue bit for bit (--restart)
     vtk/             after ``mpipack vtk RUN_DIR``: one .vtu per snapshot and snapshots.pvd
 """
@@ -76,6 +77,7 @@ class Snapshots:
         self.seconds = 0.0
         self.failed = None  # the one-line message of a snapshot that could not be written
         self._scheduled = None
+        self.container_path = None  # container.vtu once written
 
     def hooks(self):
         self._scheduled = Hook(self._due, every=self.every if self.every > 0 else None, at_end=True,
@@ -114,6 +116,7 @@ class Snapshots:
             self.writer = SnapshotWriter(self.comm, self.path, self.scene.n, self.scene.dim,
                                          file_attrs(self.scene, self.comm),
                                          truncate_after=self.truncate_after)
+            self._write_container()
         gid, fields, fig, pairs = snapshot_fields(solver)
         self.writer.write(gid, fields, {
             "iteration": iteration, "wall_seconds": elapsed,
@@ -122,6 +125,25 @@ class Snapshots:
             pairs=pairs)
         self.last_iteration = iteration
         self.seconds += time.perf_counter() - t0
+
+    def _write_container(self):
+        """The container's surface beside the snapshots (rank 0, once per writer; collective:
+        a failure is a SnapshotError on every rank)."""
+        if not self.scene.container.active:
+            return
+        from mpipack.io import container_mesh
+        from mpipack.io.snapshots import SnapshotError
+        folder = os.path.dirname(self.path)
+        err = None
+        if self.comm.rank == 0:
+            try:
+                container_mesh.write(folder, self.scene.as_dict()["container"], self.scene.dim)
+            except OSError as e:
+                err = f"{container_mesh.container_path(folder)}: not written: {e.strerror or e}"
+        err = self.comm.bcast_object(err)
+        if err is not None:
+            raise SnapshotError(err)
+        self.container_path = container_mesh.container_path(folder)
 
     def close(self):
         if self.writer is not None:

@@ -132,9 +132,10 @@ def restart_record(args, scene, state):
 # what makes a folder a run's (``engine.output``, ``mpipack vtk``)
 RUN_FILES = ("summary.json", "checkpoint.h5", "snapshots.h5", "snapshots.xmf", "metrics.csv",
              "snapshots.pvd", "vtk")
-# made from a run's files (ParaView's index of the contacts and its script, mpipack post and
-# export): removed with the run they were made from by --overwrite, not a run by themselves
-DERIVED_FILES = ("snapshots_contacts.xmf", "snapshots_contacts.pvd", "view.py", "post", "export")
+# made from a run's files (ParaView's index of the contacts, its script and the container's
+# surface, mpipack post and export): removed with the run they were made from by --overwrite, not a run by themselves
+DERIVED_FILES = ("snapshots_contacts.xmf", "snapshots_contacts.pvd", "view.py", "container.vtu", "post",
+                 "export")
 
 
 def run_files(folder):
@@ -441,7 +442,7 @@ def _execute(comm, args, scene, state, out, walltime):
     if snapshots is not None:
         snapshots.close()
         if snapshots.last_iteration is not None:
-            files += [snapshots.path, os.path.splitext(snapshots.path)[0] + ".xmf"]
+            files += [snapshots.path, os.path.splitext(snapshots.path)[0] + ".xmf", snapshots.container_path]
             summary["snapshot_seconds"] = snapshots.seconds
     if args.dump and solver is not None:
         data = solver.gather()

@@ -14,7 +14,8 @@ or in the ParaView GUI: View > Python Shell > Run Script. It opens ``<stem>.xmf`
 radius 1 scaled by the ``radius`` array, scale factor 1) coloured by pressure, and, when
 ``<stem>_contacts.xmf`` (``.pvd``) exists, the contact network (a line per pair with
 lambda > 0, the force chains) as tubes coloured by lambda, at the last snapshot (or iteration
-K). In 1D and 2D the spheres lie in z = 0, seen from +z, the network lifted in front of them; in
+K), and ``container.vtu`` (io/container_mesh.py: a run's container) as an outline in 1D and
+2D, a translucent surface in 3D. In 1D and 2D the spheres lie in z = 0, seen from +z, the network lifted in front of them; in
 3D the spheres are translucent so that the network inside shows. ``--png`` saves the picture.
 
 This module only writes the text; it imports nothing of ParaView.
@@ -33,7 +34,9 @@ _SCRIPT = '''"""ParaView view of an mpipack run (written by mpipack beside its s
 
 Spheres to scale (glyphs of the radius array) coloured by pressure; the contact network (pairs
 with lambda > 0: the force chains) as tubes coloured by lambda; the last snapshot or iteration K.
-Reads STEM.xmf and STEM_contacts.xmf beside this file (--vtk: STEM.pvd, STEM_contacts.pvd).
+Reads STEM.xmf and STEM_contacts.xmf beside this file (--vtk: STEM.pvd, STEM_contacts.pvd),
+and shows container.vtu (a run with a container: its walls) as an outline (1D, 2D) or a
+translucent surface (3D).
 """
 import argparse
 import os
@@ -44,6 +47,7 @@ from paraview.simple import (ColorBy, ExtractSurface, GetActiveViewOrCreate, Get
                              SaveScreenshot, Show, Transform, Tube)
 
 STEM = @STEM@
+CONTAINER = "container.vtu"
 HERE = os.path.dirname(os.path.abspath(globals().get("__file__") or "view.py"))
 ap = argparse.ArgumentParser(description="ParaView view of an mpipack run")
 ap.add_argument("--png", help="save the picture to this PNG file")
@@ -99,6 +103,15 @@ if network is not None:
     lut.ApplyPreset("Inferno (matplotlib)", True)
     net.SetScalarBarVisibility(view, True)
     GetScalarBar(lut, view).WindowLocation = "Upper Left Corner"
+
+container = os.path.join(HERE, CONTAINER)
+if os.path.exists(container):  # the walls (mpipack's container.vtu): outline or translucent surface
+    walls = Show(OpenDataFile(container), view)
+    walls.ColorArrayName = ["POINTS", ""]  # one colour
+    walls.AmbientColor = walls.DiffuseColor = [0.45, 0.55, 0.75]
+    walls.LineWidth, walls.PointSize = 3.0, 10.0
+    if not flat:
+        walls.Opacity = 0.2
 
 view.OrientationAxesVisibility = 0
 if flat:

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from . import halo, measures, source
+from . import container as box, halo, measures, source
 
 PICTURE_MAX = 200_000     # spheres drawn in one picture at most (a window about the centre)
 FIRST_PEAK_WINDOW = 1.5   # g(r)'s first peak: its maximum over r <= 1.5 mean diameters
@@ -26,6 +26,7 @@ class Measure:
     table: dict
     picture: object = None
     warnings: list = dataclasses.field(default_factory=list)
+    parts: dict = dataclasses.field(default_factory=dict)  # more figures: {suffix: (table, picture)}
 
 
 class Analysis:
@@ -48,6 +49,7 @@ class Analysis:
         self._contacts = {}
         self._pairs = {}
         self._contact_pairs = None
+        self.container = box.of_scene(packing.scene, self.dim)
 
     # ---- shared pieces -----------------------------------------------------------------------
     def pairs(self, factor):
@@ -122,8 +124,72 @@ class Analysis:
                    "plateau_tolerance": measures.PLATEAU_TOLERANCE, "density_at_gyration_radius": at_gyr,
                    "gyration_radius": self.r_gyr, "cluster_radius": self.r_cluster, "densest": top,
                    "centre_of_mass": [float(v) for v in self.xbar]}
+        parts = {}
+        if self.container is not None:
+            summary["container"], parts = self.in_container(warn)
         return Measure("density", summary, {"R": radii, "R_over_d": radii / self.d_mean, "phi": phi},
-                       picture={"R": radii, "phi": phi, "d": self.d_mean}, warnings=warn)
+                       picture={"R": radii, "phi": phi, "d": self.d_mean}, warnings=warn, parts=parts)
+
+    def in_container(self, warn):
+        """The packing fraction inside the container, its profiles along the axis and from
+        the wall (``container``): (summary, {suffix: (table, picture)}); adds to ``warn``."""
+        c, dim, d = self.container, self.dim, self.d_mean
+        n = self.local.n_own
+        x, diam = self.local.x[:n], self.local.diam[:n]
+        vol, side, doubtful = box.inside_volumes(c, dim, x, diam)
+        inside, cut_side = halo.exact_totals(self.comm, [vol, side])
+        doubtful = int(halo.total(self.comm, np.array([doubtful]))[0])
+        top = None
+        if c.kind == "cylinder" and c.height is None:  # open: up to the highest sphere's top
+            top = float(self.comm.allreduce(np.array([(x[:, 2] + 0.5 * diam).max() if n else -np.inf]), "max")[0])
+        volume = box.measure(c, dim, top)
+        phi = inside / volume
+        summary = {"kind": c.kind, "walls": c.names, "volume": volume, "covered": inside,
+                   "packing_fraction": phi, "side_walls_cut": cut_side}
+        if top is not None:
+            summary["open_top"] = top
+            warn.append(f"open cylinder: its volume is taken up to the highest sphere's top, z = {top:.4g}")
+        if doubtful:
+            warn.append(f"{doubtful} sphere-wall pairs stick out so far (more than 0.29 r) that two walls' cuts "
+                        "may overlap: their volume inside is approximate")
+        if phi > measures.MAX_DENSITY[dim] * (1 + 1e-9):
+            warn.append(f"packing fraction {phi:.4f} in the container above the densest packing's "
+                        f"{measures.MAX_DENSITY[dim]:.4f}: the spheres overlap")
+        parts = {}
+        span = box.axis_range(c, dim, top)
+        if span is not None:
+            z0, z1 = span
+            k = max(int(math.ceil((z1 - z0) / d - 1e-9)), 1)
+            edges = np.minimum(z0 + d * np.arange(k + 1), z1)
+            edges[-1] = z1
+            covered = box.axis_profile(self.comm, c, dim, x, diam, vol, side, edges)
+            slab = box.cross_section(c, dim) * np.diff(edges)
+            prof = covered / slab
+            parts["axis"] = ({"from": edges[:-1], "to": edges[1:], "middle_over_d": 0.5 * (edges[1:] + edges[:-1] - 2 * z0) / d,
+                              "covered": covered, "slab": slab, "phi": prof},
+                             {"x": 0.5 * (edges[1:] + edges[:-1] - 2 * z0) / d, "y": prof,
+                              "xlabel": f"height above the floor / d ({'yz'[dim - 2]})",
+                              "ylabel": "covered fraction of the slab"})
+            summary["axis_profile"] = {"axis": "yz"[dim - 2], "slab_height": d, "slabs": k, "floor": z0, "top": z1,
+                                       "phi_min": float(prof.min()), "phi_max": float(prof.max())}
+        edges = np.arange(box.WALL_RANGE_D * box.WALL_BINS_PER_D + 1) * (d / box.WALL_BINS_PER_D)
+        covered, shell, centres = box.wall_profile(self.comm, c, dim, x, diam, edges, top)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            prof = np.where(shell > 0, covered / np.where(shell > 0, shell, 1.0), np.nan)
+        mid = 0.5 * (edges[1:] + edges[:-1]) / d
+        first = mid <= 1.5
+        q = int(np.nanargmax(np.where(first & np.isfinite(prof), prof, -np.inf)))
+        qc = int(np.argmax(np.where(first, centres, -1)))
+        summary["wall_profile"] = {"bin_over_d": 1.0 / box.WALL_BINS_PER_D, "range_over_d": box.WALL_RANGE_D,
+                                   "pooled": "each wall's slabs (shells) of its own distance, summed over the walls",
+                                   "first_peak_t_over_d": float(mid[q]), "first_peak_phi": float(prof[q]),
+                                   "centres_first_peak_t_over_d": float(mid[qc]),
+                                   "centres_within_range": int(centres.sum())}
+        parts["wall"] = ({"t_from": edges[:-1], "t_to": edges[1:], "t_over_d": mid, "covered": covered,
+                          "shell": shell, "phi": prof, "centres": centres},
+                         {"x": mid, "y": prof, "xlabel": "distance from the wall / d",
+                          "ylabel": "covered fraction (pooled over the walls)", "bars": centres})
+        return summary, parts
 
     def without_rattlers(self, gap=1e-3):
         """The owned spheres that are not rattlers (mask), of the multiplier network when the
@@ -208,8 +274,32 @@ class Analysis:
                      "spheres_by_multiplier": _pad(hist, m)}
         else:
             warn.append("the file holds no contact multipliers: only the gap network is measured")
+        if self.container is not None:
+            summary["walls"] = self.wall_contacts(gap, warn)
         rattler_gids = self.local.gid[:self.local.n_own][~alive]
         return Measure("contacts", summary, table, picture=None, warnings=warn), rattler_gids
+
+    def wall_contacts(self, gap, warn):
+        """The spheres touching a wall: wall_force > 0 (the snapshot's field: sum_w lambda_iw)
+        and gap s_iw - r_i < gap r_i; their count and the mean and largest wall force."""
+        n = self.local.n_own
+        x, r = self.local.x[:n], 0.5 * self.local.diam[:n]
+        s = box.gaps(self.container.walls, x)
+        by_gap = (s - r[:, None] < gap * r[:, None]).any(axis=1) if n else np.zeros(0, bool)
+        out = {"by_gap": int(halo.total(self.comm, np.array([by_gap.sum()]))[0])}
+        wf = self.local.fields.get("wall_force")
+        if wf is None:
+            warn.append("the file holds no wall_force (a checkpoint, or a run before containers): "
+                        "wall contacts by gap only")
+            return out
+        wf = np.asarray(wf, dtype=np.float64)
+        touching = wf > 0
+        k = int(halo.total(self.comm, np.array([touching.sum()]))[0])
+        total = halo.exact_total(self.comm, wf[touching])
+        top = float(self.comm.allreduce(np.array([wf.max() if len(wf) else 0.0]), "max")[0])
+        out.update({"by_wall_force": k, "share": k / self.n, "total_wall_force": total,
+                    "mean_wall_force": total / k if k else math.nan, "max_wall_force": top})
+        return out
 
     def pressure(self):
         mu = self.local.fields.get("pressure")

@@ -183,7 +183,9 @@ def headline(name, s, d):
     if name == "density":
         rng = (f" over R = {s['plateau_from'] / d:.1f}..{s['plateau_to'] / d:.1f} d"
                if math.isfinite(s["plateau_from"]) else "")
-        return f"plateau {s['plateau']:.4f}{rng}, phi(R_g) {s['density_at_gyration_radius']:.4f}"
+        inside = (f"; in the {s['container']['kind']} phi = {s['container']['packing_fraction']:.4f}"
+                  if "container" in s else "")
+        return f"plateau {s['plateau']:.4f}{rng}, phi(R_g) {s['density_at_gyration_radius']:.4f}{inside}"
     if name == "neighbours":
         extra = f", {100 * s['share_8_to_10']:.1f}% with 8-10" if "share_8_to_10" in s else ""
         return f"mean {s['mean']:.3f} neighbours (t = {s['factor']}){extra}"
@@ -193,8 +195,12 @@ def headline(name, s, d):
         net = lam if "isostaticity" in lam else g
         which = "lambda > 0" if net is lam else f"gap < {s['gap']:g} d"
         zm = f"Z(lambda > 0) {lam['Z']:.3f}, " if lam else ""
+        w = s.get("walls")
+        walls = ("" if w is None else f"; {w['by_wall_force']} spheres on the walls (wall force > 0), mean "
+                 f"wall force {w['mean_wall_force']:.4g}" if "by_wall_force" in w else
+                 f"; {w['by_gap']} spheres on the walls (gap < {s['gap']:g} r)")
         return (f"{zm}Z(gap < {s['gap']:g} d) {g['Z']:.3f}; {net['rattlers']} rattlers ({which}), "
-                f"Z - 2b = {net['isostaticity']:+.3f} without them")
+                f"Z - 2b = {net['isostaticity']:+.3f} without them{walls}")
     if name == "pressure":
         return f"mean mu {s['mean']:.4g}, std {s['std']:.4g}, max/mean {s['max_over_mean']:.3g}"
     if name == "gr":
@@ -234,6 +240,9 @@ def write_measure(comm, out, stem, m, pk, a, extra):
         fh.write("\n")
     write_csv(paths[2], m.table)
     draw(paths[0], m, pk, a, extra)
+    for suffix, (table, picture) in m.parts.items():  # a container's profiles
+        write_csv(os.path.join(out, f"{stem}-{suffix}.csv"), table)
+        figures.profile(os.path.join(out, f"{stem}-{suffix}.png"), picture, m.warnings)
     return paths
 
 

@@ -43,6 +43,26 @@ def density(path, m, label=""):
     return _save(fig, path)
 
 
+def profile(path, p, warnings=()):
+    """A container's profile: p["y"] against p["x"], and p["bars"] (the centres' histogram)
+    on a second axis when given."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    x = np.asarray(p["x"])
+    if p.get("bars") is not None:
+        twin = ax.twinx()
+        width = x[1] - x[0] if len(x) > 1 else 1.0
+        twin.bar(x, np.asarray(p["bars"]), width=width, color="grey", alpha=0.3)
+        twin.set_ylabel("centres (grey)")
+    ax.plot(x, np.asarray(p["y"]), marker=".", zorder=3)
+    ax.set_xlabel(p["xlabel"])
+    ax.set_ylabel(p["ylabel"])
+    ax.set_ylim(0, 1.05)
+    _flag(fig, list(warnings))
+    fig.tight_layout()
+    return _save(fig, path)
+
+
 def histogram(path, m, x, y, xlabel, ylabel="share of spheres", scale=1.0):
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6, 4))

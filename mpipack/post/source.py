@@ -22,7 +22,7 @@ from mpipack.io.checkpoint import CheckpointError, read_checkpoint
 from mpipack.io.snapshots import FORMAT as SNAPSHOT_FORMAT, _group_name, damaged
 
 # per-sphere datasets a snapshot may hold beyond position and diameter
-OPTIONAL_FIELDS = ("pressure", "contacts", "net_force")
+OPTIONAL_FIELDS = ("pressure", "contacts", "net_force", "wall_force")
 
 
 class PostError(InputError):
