@@ -469,17 +469,19 @@ def format_phases(r, lammps_ns=None):
 
 
 def _lammps_ns(path, dim, n):
-    """ns per sphere-step of a tools/peers/lammps_fire.py result (JSON) of the same case, by
-    rank 0's CPU clock (as ``ns_per_sphere``; None without such a result)."""
+    """ns per sphere-step of tools/peers/lammps_fire.py results (JSON lines) of the same case,
+    by rank 0's CPU clock (as ``ns_per_sphere``), the median over the lines of that case; None
+    without one."""
     if path is None:
         return None
+    found = []
     with open(path) as f:
         for line in f:
             if line.strip():
                 got = json.loads(line)
                 if got.get("dim") == dim and got.get("n") == n:
-                    return got["cpu_seconds_rank0"] * got.get("ranks", 1) / (got["steps"] * n) * 1e9
-    return None
+                    found.append(got["cpu_seconds_rank0"] * got.get("ranks", 1) / (got["steps"] * n) * 1e9)
+    return float(np.median(found)) if found else None
 
 
 def phases_main(args, comm):
