@@ -12,6 +12,9 @@ Figures (median over repeats of the timed loop, all ranks in lock step):
     particle-iterations / s / rank = N * iterations / (loop seconds * ranks)
     bytes / particle = (resident set after set-up - resident set before) / local particles,
                        the largest over ranks (interpreter, numba and MPI are not counted)
+
+``mpipack bench --phases`` times instead the phases a default run spends its time in, on the
+packed state of a real default run (``PHASES_DOC`` below, ``phases_case``).
 """
 
 import ctypes
