@@ -127,6 +127,7 @@ SLOW = {
     "tests/test_container.py::test_restart_onto_another_rank_count",
     "tests/test_api.py::test_keyword_overrides_and_options",
     "tests/test_api.py::test_the_readme_example_runs_on_any_rank_count",
+    "tests/test_bench_phases.py::test_the_packed_state_is_the_same_on_any_rank_count",
     "tests/test_check.py::test_two_sphere_verdict_against_runs",
     "tests/test_compare.py::test_compare_quick",
     "tests/test_compare.py::test_compare_with_a_peer_curve",

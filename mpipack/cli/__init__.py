@@ -82,7 +82,19 @@ def _parser():
     b.add_argument("--n", type=_count, action="append", default=None, help="particle count (repeatable; default 1e4 1e5 1e6)")
     b.add_argument("--iters", type=_count, default=None, help="timed iterations (default: about 3 s of work)")
     b.add_argument("--form", default="S", choices=["S", "NS"])
-    b.add_argument("--json", default=None, help="append result rows to this JSON-lines file")
+    b.add_argument("--json", default=None, help="append result rows to this JSON-lines file ('-' with --phases: "
+                                                "print them after the tables)")
+    b.add_argument("--phases", action="store_true",
+                   help="time the phases of a default run (fire-al FIRE, L-BFGS, dual step, metrics, fit) "
+                        "per sphere on its packed state, with bytes and MB/s against a measured triad bandwidth")
+    b.add_argument("--quick", action="store_true", help="--phases: tiny N, short run, few repetitions (a smoke test)")
+    b.add_argument("--run-iters", type=_count, default=None,
+                   help="--phases: stop the default run after this many iterations (default: its end)")
+    b.add_argument("--repeats", type=_count, default=None, help="--phases: timed repetitions per phase (default 5)")
+    b.add_argument("--state-out", default=None, metavar="PREFIX",
+                   help="--phases: write each packed state (x, diam) to PREFIX-<dim>d-n<N>.npz (for LAMMPS)")
+    b.add_argument("--lammps-json", default=None, metavar="FILE",
+                   help="--phases: tools/peers/lammps_fire.py results on those states: ratio to LAMMPS's FIRE step")
     pp = sub.add_parser("paper", help="re-run the paper's experiments; writes report.md and PNG figures")
     pp.add_argument("--quick", action="store_true", help="a reduced run (under a minute)")
     pp.add_argument("--out", default=None, help="output folder (default mpipack-out/paper[-quick])")

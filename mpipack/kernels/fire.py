@@ -72,6 +72,10 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
     # range(dim) loop the pass took 8 - 10% longer, 3D N = 2000 and 2D N = 8000 states)
     fbuf = exactsum.staging(acc)
     gravity = pot[potential.POT_KIND] == potential.GRAVITY
+    # a dual step of gain 0 leaves every lambda (>= 0) as it is, lam + 0 = lam for a finite
+    # phi: skip its read-modify-write of the multipliers (the L-BFGS gradient passes, FIRE's
+    # once c_b has grown; 16% of a 2D gradient pass, ``mpipack bench --phases``)
+    update_lambda = update_lambda and beta != 0.0
     xb0 = xbar[0]
     xb1 = xbar[1] if dim > 1 else 0.0
     xb2 = xbar[2] if dim > 2 else 0.0
