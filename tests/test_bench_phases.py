@@ -70,7 +70,7 @@ def test_a_dual_step_of_gain_zero_changes_no_bit(dim, form):
     whether the pass is asked to update lambda or not."""
     from mpipack.kernels import fire as kernels_fire
     from mpipack.parallel import exactsum
-    from support import no_walls, random_cloud, random_lambda, rows_complete
+    from support import CENTRE, no_walls, random_cloud, random_lambda, rows_complete
 
     rng = np.random.default_rng(7 + dim)
     n = 40
@@ -89,7 +89,7 @@ def test_a_dual_step_of_gain_zero_changes_no_bit(dim, form):
             x_new = np.full_like(x, np.nan)
             acc = exactsum.new_accumulator(dim + kernels_fire.N_ACC)
             maxima = np.zeros(kernels_fire.N_MAX)
-            active = kern(x, x_prev, x_new, n, diam, offsets, pair_j, lam, *no_walls(n), xbar, 1.2, -0.2, 0.02, 0.08,
+            active = kern(x, x_prev, x_new, n, diam, offsets, pair_j, lam, *no_walls(n), xbar, CENTRE, 1.2, -0.2, 0.02, 0.08,
                           0.0, 0.7, True, weighted, 0.05, update, acc, maxima)
             out.append((x_new, lam, acc, maxima, active))
     # the old arithmetic of the dual step with beta = 0, in numpy: max(0, lam + 0 * w * phi)

@@ -355,7 +355,7 @@ def phases_case(comm, dim, n, run_iters=None, repeats=5, target=0.3, fit_steps=5
         def call():
             red.begin()
             kern(st.x, st.x_prev, st.x_new, nl, st.diam, st.pair_offsets, st.pair_j, st.pair_lambda, st.walls,
-                 st.wall_lambda, solver.xbar, *c, update, red.acc("step"), red.maxima("step"), all_sums)
+                 st.wall_lambda, solver.xbar, solver.pot, *c, update, red.acc("step"), red.maxima("step"), all_sums)
         return call
 
     sec = {}
