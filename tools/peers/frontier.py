@@ -255,12 +255,24 @@ def main(argv=None):
         p.add_argument(f"--{c}-args", default="", help=f"extra options for {c} (lammps_fire.py options / --set k=v)")
     p.add_argument("--out", default=os.path.join(REPO, "mpipack-out", "frontier"))
     p.add_argument("--png", default=None)
-    p.add_argument("--report", default=None, help="a result .json: only the table and the figure")
+    p.add_argument("--report", nargs="+", default=None,
+                   help="result .json file(s): only the table and the figure (several: merged, one W_best, "
+                        "codes named code@folder, e.g. a parameter sweep)")
     p.add_argument("--no-table", action="store_true")
     args = p.parse_args(argv)
     if args.report:
-        with open(args.report) as f:
-            result = analyse(json.load(f))
+        result = None
+        for path in args.report:
+            with open(path) as f:
+                r = json.load(f)
+            if len(args.report) > 1:  # a sweep: one W_best over all; codes named by their folder
+                tagname = os.path.basename(os.path.dirname(os.path.abspath(path)))
+                r["codes"] = {f"{k}@{tagname}": v for k, v in r["codes"].items()}
+            if result is None:
+                result = r
+            else:
+                result["codes"].update(r["codes"])
+        result = analyse(result)
         if not args.no_table:
             print(table(result))
         if args.png:

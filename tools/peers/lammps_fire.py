@@ -588,9 +588,11 @@ def parser():
                    help="quench: the two-stage K continuation (default); stiff: one FIRE minimize at the "
                         "final K to ||F|| <= --kkt-stop ||grad W||; damped: fix nve/limit + fix viscous MD, same stop")
     p.add_argument("--kkt-stop", type=float, default=1e-3, help="stiff/damped: stop at ||F|| <= this ||grad W||")
-    p.add_argument("--md-dt", type=float, default=0.2, help="damped: time step * sqrt(K)")
+    p.add_argument("--md-dt", type=float, default=0.3, help="damped: time step * sqrt(K)")
+    # gamma and xmax: the best of gamma in {1, 4, 16} x xmax in {0.01, 0.1} d at dt sqrt(K) = 0.3,
+    # 3D N = 2000 (docs/benchmarks.md, "Work-precision frontier against LAMMPS")
     p.add_argument("--gamma", type=float, default=1.0, help="damped: fix viscous gamma (mass 1)")
-    p.add_argument("--md-limit", type=float, default=0.5,
+    p.add_argument("--md-limit", type=float, default=0.01,
                    help="damped: fix nve/limit xmax in diameters (0: plain fix nve)")
     p.add_argument("--trace", default=None,
                    help="record positions every --trace-every steps to this .npz (one per rank with several ranks)")
