@@ -223,14 +223,23 @@ def plot(result, png):
     import matplotlib.pyplot as plt
     keys = level_keys()
     fig, ax = plt.subplots(figsize=(8, 4.5))
+    nw = len(score.W_LEVELS)
     for name, c in result["codes"].items():
         ys = [c["levels"][k] for k in keys]
-        xs = [i for i, y in enumerate(ys) if y is not None]
-        ax.plot(xs, [ys[i] for i in xs], marker="o", label=LABELS.get(name, name))
+        color = None
+        for group in (range(nw), range(nw, len(keys))):   # W levels, KKT levels: two lines
+            xs = [i for i in group if ys[i] is not None]
+            if not xs and color is not None:
+                continue
+            line, = ax.plot(xs, [ys[i] for i in xs], marker="o", color=color,
+                            label=LABELS.get(name, name) if color is None else None)
+            color = line.get_color()
     ax.set_xticks(range(len(keys)))
     ax.set_xticklabels([k.replace("<=", "≤") for k in keys], rotation=30)
     ax.set_yscale("log")
     ax.set_ylabel("wall seconds to first reach (log)")
+    ax.axvline(nw - 0.5, color="grey", lw=0.8)
+    ax.set_xlabel("level (a missing point: not reached)")
     case = result["case"]
     ax.set_title(f"{case['dim']}D N = {case['n']}, {case['ranks']} rank(s): time to each level "
                  f"(overlap ≤ 1e-3 d for all; shared machine, load {result['loadavg'][0]:.0f})", fontsize=9)
