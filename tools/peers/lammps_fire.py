@@ -516,13 +516,13 @@ def run_single_stage(sim, args, x0, diam, K, log):
         else:
             cmd("fix integrate all nve")
         cmd(f"fix damp all viscous {args.gamma:.17g}")
+    if args.time_limit:
+        # LAMMPS's own timeout: rank 0's clock decides for all ranks (each rank's own "wall"
+        # may differ, and a rank leaving the loop alone would hang the others); once expired,
+        # every later run/minimize does 0 steps. It counts from here, the checks included.
+        cmd(f"timer timeout {args.time_limit:.3f}")
     while steps < args.max_steps:
-        if args.time_limit and wall > args.time_limit:
-            reason = "time_limit"
-            break
         if args.protocol == "stiff":
-            if args.time_limit:
-                cmd(f"timer timeout {max(1.0, args.time_limit - wall):.3f}")
             dts, ds, dc = sim.minimize(args.max_steps - steps, ftol=args.kkt_stop * gw)
         else:
             dts, ds, dc = sim.md(min(args.check_every, args.max_steps - steps))
@@ -542,9 +542,9 @@ def run_single_stage(sim, args, x0, diam, K, log):
             reached, reason = True, "kkt_stop"
             break
         if ds == 0:
-            reason = "no_progress"
+            reason = "time_limit" if args.time_limit else "no_progress"
             break
-    if args.protocol == "stiff" and args.time_limit:
+    if args.time_limit:
         cmd("timer timeout off")
     x = sim.positions()
     fig = score.score(x, diam)
