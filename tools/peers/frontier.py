@@ -137,9 +137,11 @@ def mpipack_python():
     if os.environ.get("MPIPACK_PYTHON"):
         return os.environ["MPIPACK_PYTHON"]
     cmd = mpipack_side.mpipack_command()
-    if os.path.basename(cmd[0]).startswith("python"):
-        return cmd[0]
-    return os.path.join(os.path.dirname(cmd[0]), "python")
+    py = cmd[0] if os.path.basename(cmd[0]).startswith("python") else os.path.join(os.path.dirname(cmd[0]), "python")
+    if not os.path.exists(py):
+        raise SystemExit(f"frontier: no python with h5py and matplotlib at {py}: set MPIPACK_CMD "
+                         f"(e.g. \"/path/to/.venv/bin/python -m mpipack.cli\") or MPIPACK_PYTHON")
+    return py
 
 
 def run_mpipack(code, start, ranks, workdir, args):
