@@ -75,6 +75,61 @@ def k_estimate(n, dim, d=1.0, overlap=6e-4, force_factor=10.0):
     return f / (2.0 * overlap * d)     # F = 2 K delta d with delta relative overlap
 
 
+class Recorder:
+    """Positions every ``every`` steps, taken by a ``fix external`` (pf/callback) callback
+    during ``minimize`` and ``run`` (FIRE is not restarted to take them), with the relaxation
+    seconds at that step: the seconds of the timed commands so far less the time spent in the
+    callback itself (measured around its body; it copies the local rows). Each rank keeps its
+    own rows (with their atom ids); ``save`` writes one file per rank, frontier.py merges them
+    by id. The callback adds no force (its external force array stays zero)."""
+
+    def __init__(self, sim, every):
+        self.sim, self.every = sim, int(every)
+        self.steps, self.seconds, self.K, self.tags, self.xs = [], [], [], [], []
+        self.base = 0.0          # timed seconds of the commands done
+        self.t_cmd = None        # perf_counter at the start of the current timed command
+        self.excluded_cmd = 0.0  # callback seconds inside the current command
+        self.excluded = 0.0      # callback seconds in all
+        sim.lmp.command(f"fix rec all external pf/callback {self.every} 1")
+        sim.lmp.set_fix_external_callback("rec", self._callback, None)
+
+    def begin(self):
+        self.t_cmd, self.excluded_cmd = time.perf_counter(), 0.0
+
+    def end(self):
+        """Close a timed command; returns the callback seconds spent inside it."""
+        self.base += time.perf_counter() - self.t_cmd - self.excluded_cmd
+        self.t_cmd = None
+        self.excluded += self.excluded_cmd
+        return self.excluded_cmd
+
+    def _callback(self, caller, step, nlocal, tag, x, f):
+        t = time.perf_counter()
+        if self.t_cmd is None:     # an untimed command (run 0 for an energy): not recorded
+            return
+        if self.steps and self.steps[-1] == step:   # a new minimize starts where the last ended
+            self.excluded_cmd += time.perf_counter() - t
+            return
+        self.steps.append(int(step))
+        self.seconds.append(self.base + (t - self.t_cmd - self.excluded_cmd))
+        self.K.append(self.sim.K)
+        self.tags.append(np.array(tag[:nlocal], dtype=np.int64))
+        self.xs.append(np.array(x[:nlocal, : self.sim.dim], dtype=float))
+        self.excluded_cmd += time.perf_counter() - t
+
+    def save(self, path):
+        """One .npz per rank (``path``, or ``<stem>.rank<r>.npz`` with several ranks): steps,
+        seconds, K (per record), counts (rows per record), tag and x (rows of all records)."""
+        if self.sim.size > 1:
+            path = f"{path[:-4]}.rank{self.sim.rank}.npz"
+        counts = np.array([t.size for t in self.tags], dtype=np.int64)
+        np.savez(path, steps=np.array(self.steps, dtype=np.int64), seconds=np.array(self.seconds),
+                 K=np.array(self.K), counts=counts, ranks=self.sim.size, dim=self.sim.dim,
+                 tag=np.concatenate(self.tags) if self.tags else np.zeros(0, np.int64),
+                 x=np.concatenate(self.xs) if self.xs else np.zeros((0, self.sim.dim)))
+        return path
+
+
 class Lammps:
     """One LAMMPS instance holding the system; all ranks call the same methods."""
 
@@ -85,6 +140,7 @@ class Lammps:
         cmdargs = ["-nocite", "-screen", "none", "-log", log]
         self.log = log
         self.lmp = lmp = lammps.lammps(cmdargs=cmdargs)
+        self.recorder = None
         self.rank = lmp.extract_setting("world_rank")
         self.size = lmp.extract_setting("world_size")
         # types: one per distinct diameter
@@ -195,13 +251,28 @@ class Lammps:
                          f"alpha0 {a.alpha0} alphashrink {a.alphashrink} halfstepback {a.halfstepback}")
         return dt0, dtmax
 
-    def minimize(self, steps):
-        """``steps`` FIRE steps; returns (wall seconds, steps done, CPU seconds of this rank)."""
+    def timed(self, command):
+        """Run one LAMMPS command on the clock; returns (wall seconds less the recorder's
+        callback seconds, steps done, CPU seconds of this rank)."""
         t0, c0 = time.perf_counter(), time.process_time()
         s0 = self.lmp.extract_global("ntimestep")
-        self.lmp.command(f"minimize 0.0 0.0 {steps} {10 * steps}")
-        return (time.perf_counter() - t0, self.lmp.extract_global("ntimestep") - s0,
+        if self.recorder is not None:
+            self.recorder.begin()
+        self.lmp.command(command)
+        excluded = self.recorder.end() if self.recorder is not None else 0.0
+        return (time.perf_counter() - t0 - excluded, self.lmp.extract_global("ntimestep") - s0,
                 time.process_time() - c0)
+
+    def minimize(self, steps, ftol=0.0):
+        """``steps`` FIRE steps (fewer when the force 2-norm drops below ``ftol``); returns
+        (wall seconds, steps done, CPU seconds of this rank)."""
+        return self.timed(f"minimize 0.0 {ftol:.17g} {steps} {10 * steps}")
+
+    def md(self, steps):
+        """``steps`` MD steps (``run``; set-up redone only at the first call)."""
+        first = not getattr(self, "_md_started", False)
+        self._md_started = True
+        return self.timed(f"run {steps}" + ("" if first else " pre no post no"))
 
 
 def force_evaluations(log):
@@ -282,8 +353,14 @@ def run(args):
         args.force_factor = FORCE_FACTOR[dim]
     k_est = k_estimate(n, dim, dref, args.overlap_target, args.force_factor)
     K = args.k0 if args.k0 else args.k0_factor * k_est
+    if args.protocol != "quench":
+        K = k_est
     sim.set_k(K)
     sim.lmp.command("run 0 post no")        # start-up (neighbour lists of the dense start): not timed
+    if args.trace:
+        sim.recorder = Recorder(sim, args.trace_every)
+    if args.protocol != "quench":
+        return run_single_stage(sim, args, x0, diam, k_est, log)
     hist_s, hist_w, hist_o = [], [], []     # step, W, max overlap at the checks of this stage
     stages = []
     dt0, dtmax = sim.fire_settings()
@@ -377,6 +454,116 @@ def run(args):
         fv = score.score(sim.positions(), diam)
         out["verify"] = {"extra_steps": done, "final": fv,
                          "W_rel_change_after_stop": (fv["W"] - w_stop) / fv["W"]}
+    if args.trace:
+        out["trace"] = sim.recorder.save(args.trace)
+        out["trace_records"] = len(sim.recorder.steps)
+        out["trace_callback_seconds"] = sim.recorder.excluded
+    if rank0:
+        text = json.dumps(out)
+        if args.json:
+            with open(args.json, "w") as f:
+                f.write(text + "\n")
+        print(text, flush=True)
+    sim.lmp.close()
+    if rank0 and not args.keep_log:
+        try:
+            os.remove(log)
+        except OSError:
+            pass
+    return 0 if reached else 4
+
+
+def final_grad_w_estimate(n, dim, d=1.0):
+    """||grad W|| of the packed ball: sqrt(sum_i |X_i - Xbar|^2) = sqrt(n b/(b+2)) R, R the
+    radius of n spheres at the density of k_estimate (a first scale for FIRE's ftol)."""
+    phi = {1: 1.0, 2: 0.84, 3: 0.63}[dim]
+    nd = phi / (unit_ball(dim) * (0.5 * d) ** dim)
+    R = (n / (nd * unit_ball(dim))) ** (1.0 / dim)
+    return math.sqrt(n * dim / (dim + 2.0)) * R
+
+
+def run_single_stage(sim, args, x0, diam, K, log):
+    """The single-stage protocols at the final K (k_estimate for --overlap-target), until the
+    net force ||F|| <= --kkt-stop ||grad W|| (the KKT residual with the penalty forces as
+    multipliers, score.penalty_kkt_residual) or --time-limit seconds:
+
+    - ``stiff``: one FIRE ``minimize`` (FIRE settings as the quench's), LAMMPS's own force
+      criterion ftol = kkt_stop ||grad W||, with ||grad W|| first estimated for the packed
+      ball (final_grad_w_estimate) and then measured; a new ``minimize`` only if the
+      criterion does not hold at the measured ||grad W||;
+    - ``damped``: damped MD, ``fix nve/limit`` (--md-limit x d per step at most; 0: plain
+      ``fix nve``, which the dense start's overlaps blow apart at this K) and ``fix viscous``
+      --gamma, time step --md-dt / sqrt(K), in ``run`` chunks of --check-every steps (a
+      chunk does not disturb the dynamics), the criterion checked after each (not timed).
+    """
+    rank0 = sim.rank == 0
+    dref = float(np.median(diam))
+    cmd = sim.lmp.command
+    wall = cpu = 0.0
+    steps = 0
+    checks = []
+    reached = False
+    reason = "max_steps"
+    t_all = time.perf_counter()
+    if args.protocol == "stiff":
+        dt0, dtmax = sim.fire_settings()
+        gw = final_grad_w_estimate(sim.n, sim.dim, dref)
+    else:
+        dt = args.md_dt / math.sqrt(K)
+        cmd(f"timestep {dt:.17g}")
+        if args.md_limit > 0:
+            cmd(f"fix integrate all nve/limit {args.md_limit * dref:.17g}")
+        else:
+            cmd("fix integrate all nve")
+        cmd(f"fix damp all viscous {args.gamma:.17g}")
+    if args.time_limit:
+        # LAMMPS's own timeout: rank 0's clock decides for all ranks (each rank's own "wall"
+        # may differ, and a rank leaving the loop alone would hang the others); once expired,
+        # every later run/minimize does 0 steps. It counts from here, the checks included.
+        cmd(f"timer timeout {args.time_limit:.3f}")
+    while steps < args.max_steps:
+        if args.protocol == "stiff":
+            dts, ds, dc = sim.minimize(args.max_steps - steps, ftol=args.kkt_stop * gw)
+        else:
+            dts, ds, dc = sim.md(min(args.check_every, args.max_steps - steps))
+        wall += dts
+        cpu += dc
+        steps += ds
+        x = sim.positions()
+        fig = score.score(x, diam)
+        kkt = score.penalty_kkt_residual(x, diam, sim.K)
+        gw = math.sqrt(2.0 * fig["W"])
+        checks.append({"step": steps, "seconds": wall, "max_overlap": fig["max_overlap"],
+                       "W_over_N2": fig["W_over_N2"], "kkt": kkt})
+        if args.verbose and rank0:
+            print(f"step {steps:7d} t {wall:8.2f}s K {sim.K:.3g} overlap {fig['max_overlap']:.3e} "
+                  f"W/N2 {fig['W_over_N2']:.6f} kkt {kkt:.3e}", flush=True)
+        if kkt <= args.kkt_stop:
+            reached, reason = True, "kkt_stop"
+            break
+        if ds == 0:
+            reason = "time_limit" if args.time_limit else "no_progress"
+            break
+    if args.time_limit:
+        cmd("timer timeout off")
+    x = sim.positions()
+    fig = score.score(x, diam)
+    out = {
+        "code": "lammps", "version": sim.lmp.version(), "ranks": sim.size, "n": sim.n, "dim": sim.dim,
+        "start": os.path.abspath(args.start), "reached": reached, "stop_reason": reason,
+        "seconds": wall, "cpu_seconds_rank0": cpu, "total_seconds": time.perf_counter() - t_all,
+        "steps": steps, "final": fig, "final_kkt": score.penalty_kkt_residual(x, diam, sim.K),
+        "protocol": {"name": args.protocol, "K": sim.K, "overlap_target": args.overlap_target,
+                     "force_factor": args.force_factor, "kkt_stop": args.kkt_stop,
+                     "dtmax_sqrtK": args.dtmax, "tmax": args.tmax, "dmax": args.dmax,
+                     "md_dt_sqrtK": args.md_dt, "gamma": args.gamma, "md_limit": args.md_limit,
+                     "check_every": args.check_every, "skin": args.skin},
+        "checks": checks if args.keep_checks else checks[-3:],
+    }
+    if args.trace:
+        out["trace"] = sim.recorder.save(args.trace)
+        out["trace_records"] = len(sim.recorder.steps)
+        out["trace_callback_seconds"] = sim.recorder.excluded
     if rank0:
         text = json.dumps(out)
         if args.json:
@@ -397,6 +584,19 @@ def parser():
     p.add_argument("start", help=".npz with x (N, b) and diam (N,)")
     p.add_argument("--json", help="write the result (one JSON object) here too")
     p.add_argument("--trap", choices=["wall", "addforce"], default="wall")
+    p.add_argument("--protocol", choices=["quench", "stiff", "damped"], default="quench",
+                   help="quench: the two-stage K continuation (default); stiff: one FIRE minimize at the "
+                        "final K to ||F|| <= --kkt-stop ||grad W||; damped: fix nve/limit + fix viscous MD, same stop")
+    p.add_argument("--kkt-stop", type=float, default=1e-3, help="stiff/damped: stop at ||F|| <= this ||grad W||")
+    p.add_argument("--md-dt", type=float, default=0.3, help="damped: time step * sqrt(K)")
+    # gamma and xmax: the best of gamma in {1, 4, 16} x xmax in {0.01, 0.1} d at dt sqrt(K) = 0.3,
+    # 3D N = 2000 (docs/benchmarks.md, "Work-precision frontier against LAMMPS")
+    p.add_argument("--gamma", type=float, default=1.0, help="damped: fix viscous gamma (mass 1)")
+    p.add_argument("--md-limit", type=float, default=0.01,
+                   help="damped: fix nve/limit xmax in diameters (0: plain fix nve)")
+    p.add_argument("--trace", default=None,
+                   help="record positions every --trace-every steps to this .npz (one per rank with several ranks)")
+    p.add_argument("--trace-every", type=int, default=100)
     p.add_argument("--check-forces", action="store_true", help="finite-difference check of forces vs energy, then exit")
     p.add_argument("--check-spread", type=float, default=25.0, help="--check-forces: positions = start * this")
     # finish line (score.py)

@@ -177,6 +177,83 @@ def at_finish_line(figures, steps, Ws, overlap_tol=OVERLAP_TOL, w_tol=W_TOL, loo
     return figures["max_overlap"] <= overlap_tol and settled(steps, Ws, w_tol, lookback, window)
 
 
+# ---- the work-precision frontier (frontier.py): one scoring for every recorded state ----------
+FRONTIER_OVERLAP = 1e-3                                  # every level asks max overlap <= 1e-3 d
+W_LEVELS = (1e-1, 3e-2, 1e-2, 3e-3, 1e-3, 3e-4)          # (W - W_best) / W_best <= level
+KKT_LEVELS = (1e-1, 3e-2, 1e-2)                          # KKT residual <= level
+
+
+def penalty_kkt_residual(x, diam, K):
+    """The KKT residual of a soft-sphere (penalty) state, the penalty forces as multipliers:
+    ||F|| / ||grad W|| with F_i = -(X_i - Xbar) + sum_j 2 K_kl (d_kl - r) u_ij (the net force
+    of E = W + sum_{r < d_kl} K_kl (d_kl - r)^2, K_kl = K / d_kl^2, u_ij the unit vector from
+    X_j to X_i) and grad W_i = X_i - Xbar. x (N, b), diam (N,) or a scalar; a float."""
+    x = np.asarray(x, dtype=float)
+    if x.ndim == 1:
+        x = x[:, None]
+    n = x.shape[0]
+    diam = np.broadcast_to(np.asarray(diam, dtype=float), (n,))
+    gw = x - x.mean(axis=0)
+    F = -gw.copy()
+    i, j = close_pairs(x, float(diam.max()))
+    if i.size:
+        v = x[i] - x[j]
+        r = np.sqrt((v * v).sum(axis=1))
+        dkl = 0.5 * (diam[i] + diam[j])
+        mag = np.where(r < dkl, 2.0 * K / dkl ** 2 * (dkl - r), 0.0)
+        fij = (mag / np.where(r > 0, r, 1.0))[:, None] * v      # on i, away from j
+        np.add.at(F, i, fij)
+        np.add.at(F, j, -fij)
+    gw_norm = math.sqrt(float((gw * gw).sum()))
+    f_norm = math.sqrt(float((F * F).sum()))
+    return f_norm / gw_norm if gw_norm > 0 else (0.0 if f_norm == 0 else math.inf)
+
+
+def score_state(x, diam, K=None, kkt=None):
+    """The frontier's figures of one recorded state, the same function for every code:
+    max_overlap and W from the positions (``score``), and the KKT residual: from the
+    positions with the penalty forces as multipliers when the code is a penalty code of
+    stiffness ``K`` (LAMMPS), else ``kkt`` as the code reports it (mpipack's own residual of
+    the same definition, ||grad W + sum lambda grad phi|| / ||grad W||), else NaN."""
+    fig = score(x, diam)
+    if K is not None:
+        k = penalty_kkt_residual(x, diam, K)
+    elif kkt is not None:
+        k = float(kkt)
+    else:
+        k = math.nan
+    return {"max_overlap": fig["max_overlap"], "W": fig["W"], "W_over_N2": fig["W_over_N2"],
+            "density": fig["density"], "contacts_per_sphere": fig["contacts_per_sphere"], "kkt": k}
+
+
+def best_w(traces, overlap_tol=FRONTIER_OVERLAP):
+    """W_best: the lowest W over the states of all ``traces`` (lists of score_state dicts)
+    with max overlap <= overlap_tol; None if there is none."""
+    ws = [s["W"] for t in traces for s in t if s["max_overlap"] <= overlap_tol]
+    return min(ws) if ws else None
+
+
+def levels_reached(trace, W_best, overlap_tol=FRONTIER_OVERLAP, w_levels=W_LEVELS, kkt_levels=KKT_LEVELS):
+    """For one code's trace (score_state dicts with "seconds", in time order): the first
+    seconds at which each level holds, None where never. Keys "W<=level" (max overlap <=
+    overlap_tol and (W - W_best) / W_best <= level) and "KKT<=level" (max overlap <=
+    overlap_tol and kkt <= level; a NaN kkt never counts)."""
+    out = {f"W<={lv:g}": None for lv in w_levels}
+    out.update({f"KKT<={lv:g}": None for lv in kkt_levels})
+    for s in trace:
+        if not s["max_overlap"] <= overlap_tol:
+            continue
+        if W_best is not None:
+            gap = (s["W"] - W_best) / W_best
+            for lv in w_levels:
+                if out[f"W<={lv:g}"] is None and gap <= lv:
+                    out[f"W<={lv:g}"] = s["seconds"]
+        for lv in kkt_levels:
+            if out[f"KKT<={lv:g}"] is None and s["kkt"] <= lv:
+                out[f"KKT<={lv:g}"] = s["seconds"]
+    return out
+
+
 def main(argv):
     for path in argv:
         d = np.load(path)
