@@ -172,6 +172,19 @@ class Analysis:
                               "ylabel": "covered fraction of the slab"})
             summary["axis_profile"] = {"axis": "yz"[dim - 2], "slab_height": d, "slabs": k, "floor": z0, "top": z1,
                                        "phi_min": float(prof.min()), "phi_max": float(prof.max())}
+            # the bed: the slabs from 2 d above the floor to 2 d below the spheres' free surface
+            # (a container filled to part of its height counts the empty room above in phi)
+            surface = float(self.comm.allreduce(
+                np.array([(x[:, dim - 1] + 0.5 * diam).max() if n else -np.inf]), "max")[0])
+            bed = (edges[:-1] >= z0 + 2 * d) & (edges[1:] <= surface - 2 * d)
+            if bed.any():
+                phi_bed = float(covered[bed].sum() / slab[bed].sum())
+                summary["bed"] = {"from": float(edges[:-1][bed][0]), "to": float(edges[1:][bed][-1]),
+                                  "surface": surface, "packing_fraction": phi_bed}
+                if surface < z1 - 2 * d:
+                    warn.append(f"the spheres fill the container up to {surface:.4g} of {z1:.4g}: its packing "
+                                f"fraction counts the empty room above; the bed's (slabs {2:d} d from the floor "
+                                f"and the surface) is {phi_bed:.4f}")
         edges = np.arange(box.WALL_RANGE_D * box.WALL_BINS_PER_D + 1) * (d / box.WALL_BINS_PER_D)
         covered, shell, centres = box.wall_profile(self.comm, c, dim, x, diam, edges, top)
         with np.errstate(divide="ignore", invalid="ignore"):

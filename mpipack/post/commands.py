@@ -185,6 +185,8 @@ def headline(name, s, d):
                if math.isfinite(s["plateau_from"]) else "")
         inside = (f"; in the {s['container']['kind']} phi = {s['container']['packing_fraction']:.4f}"
                   if "container" in s else "")
+        if "container" in s and "bed" in s["container"]:
+            inside += f", in the bed {s['container']['bed']['packing_fraction']:.4f}"
         return f"plateau {s['plateau']:.4f}{rng}, phi(R_g) {s['density_at_gyration_radius']:.4f}{inside}"
     if name == "neighbours":
         extra = f", {100 * s['share_8_to_10']:.1f}% with 8-10" if "share_8_to_10" in s else ""
