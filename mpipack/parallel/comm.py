@@ -125,6 +125,20 @@ def _fused_op():
     return _FUSED_OP
 
 
+_FUSED_TYPES = {}
+
+
+def _fused_type(n):
+    """The whole fused buffer of n int64 as ONE element of a contiguous datatype: the op reads
+    its layout from buf[0], so MPI must never hand it a piece of the buffer. With n int64 of
+    count n, Open MPI's segmented algorithms (ring, reduce-scatter + allgather: 8 ranks and a
+    buffer of 5000, 2 ranks and 1000, 32 ranks and the loop's 32) call the op on slices."""
+    t = _FUSED_TYPES.get(n)
+    if t is None:
+        t = _FUSED_TYPES[n] = MPI.INT64_T.Create_contiguous(n).Commit()
+    return t
+
+
 class Comm:
     """A communicator plus the verbs above. ``rank`` and ``size`` as in MPI."""
 
@@ -182,7 +196,8 @@ class Comm:
         out = np.empty_like(buf)
         if self.counts is not None:
             self.counts.add("reduce", ALLREDUCE, 1, buf.nbytes)
-        self.mpi.Allreduce(buf, out, op=_fused_op())
+        whole = _fused_type(buf.size)
+        self.mpi.Allreduce([buf, 1, whole], [out, 1, whole], op=_fused_op())
         g_sums = out[1:1 + n_sum].reshape(sums.shape)
         mbits = out[1 + n_sum:].copy()
         nan = mbits == np.iinfo(np.int64).max
