@@ -63,6 +63,7 @@ NETWORKS = {  # name: (latency s, bandwidth bytes/s)
     "InfiniBand HDR-class (1.5 us, 12 GB/s)": (1.5e-6, 12e9),
     "10 GbE (20 us, 1.2 GB/s)": (20e-6, 1.2e9),
 }
+FIT_FROM_K = 8  # the surface-to-volume fits use K >= 8
 KS_MODEL = [1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024]
 
 
@@ -303,12 +304,14 @@ def fit_laws(rows, case, dim):
     forward bytes per rank per iteration (largest rank) = a_f (N/K)^((d-1)/d); rebuild bytes
     per rank per iteration likewise; messages per rank and per-iteration collective calls at the
     largest measured K."""
-    pts = [(n, k, measured_table(rows, case, dim, n)) for n in sorted({nn for (c, d, nn, kk) in rows
-                                                                       if (c, d) == (case, dim)})]
+    pts = [(n, measured_table(rows, case, dim, n))
+           for n in sorted({nn for (c, d, nn, kk) in rows if (c, d) == (case, dim)})]
     e = (dim - 1) / dim
     xs, fwd, reb, gh = [], [], [], []
-    for n, _, table in pts:
+    for n, table in pts:
         for t in table:
+            if t["K"] < FIT_FROM_K:  # one or two cuts through the whole cloud: not yet the law
+                continue
             xs.append((n / t["K"]) ** e)
             fwd.append(t["fwd_bytes_max"])
             reb.append(t["rebuild_bytes_per_it_mean"])
@@ -323,7 +326,12 @@ def fit_laws(rows, case, dim):
         a = float(np.exp(np.mean(np.log(v[ok] / xs[ok]))))
         return a, float(np.sqrt(np.mean((v[ok] / (a * xs[ok]) - 1.0) ** 2)))
 
-    return {"forward_bytes": fit(fwd), "rebuild_bytes": fit(reb), "ghosts": fit(gh), "points": len(xs)}
+    # the exponent left free: log v = log a + p log(N/K), least squares (p = (d-1)/d if the law holds)
+    v = np.array(fwd, float)
+    ok = v > 0
+    p_free = float(np.polyfit(np.log(xs[ok]) / e, np.log(v[ok]), 1)[0]) if ok.sum() >= 2 else math.nan
+    return {"forward_bytes": fit(fwd), "rebuild_bytes": fit(reb), "ghosts": fit(gh), "points": len(xs),
+            "free_exponent": p_free}
 
 
 def predict(rows, bench, case, dim, n_total, lat, bw, weak=None):
@@ -348,7 +356,8 @@ def predict(rows, bench, case, dim, n_total, lat, bw, weak=None):
         else:
             # the nearest measured N's largest K gives the messages, calls and imbalance
             n_ref = min(ns, key=lambda v: abs(math.log(v / n)))
-            k_ref = max(kk for (c, d, nn, kk) in rows if (c, d, nn) == (case, dim, n_ref))
+            ks_ref = [kk for (c, d, nn, kk) in rows if (c, d, nn) == (case, dim, n_ref)]
+            k_ref = k if k in ks_ref else max(ks_ref)  # the same K at another N, else the largest
             ref = rows[(case, dim, n_ref, k_ref)]
             p_ref = iteration_comm(ref, k_ref, 0.0, bw)  # the bytes' part only, at k_ref
             l_ref = iteration_comm(ref, k_ref, lat, 1e300)  # the latency part only
@@ -387,6 +396,14 @@ def half_point(pred):
     return None
 
 
+def below_half(pred):
+    """The first K at which the efficiency falls below 0.5 (None: never up to 1024)."""
+    for o in pred:
+        if o["efficiency"] < 0.5:
+            return o["K"]
+    return None
+
+
 def model(args):
     rows = load_rows(args.json)
     bench = load_bench(args.bench)
@@ -416,9 +433,9 @@ def model(args):
                         f"{t['rebuild_colls_per_rebuild']:.0f} | {t['rebuild_bytes_per_it_mean']:.0f} | "
                         f"{t['ghosts_mean']:.0f} ({t['ghosts_max']:.0f}) | {t['imbalance']:.3f} | {t['far_ghosts']} |")
     say("")
-    say("### Surface-to-volume fits (K = 2..32, every N)\n")
-    say("| start | dim | forward bytes / rank / it (largest rank) | rms rel. residual | ghosts / rank (largest) | rms | rebuild bytes / rank / it | rms | points |")
-    say("|---|---|---|---|---|---|---|---|---|")
+    say(f"### Surface-to-volume fits (K = {FIT_FROM_K}..32, every N)\n")
+    say("| start | dim | forward bytes / rank / it (largest rank) | rms rel. residual | free exponent | ghosts / rank (largest) | rms | rebuild bytes / rank / it | rms | points |")
+    say("|---|---|---|---|---|---|---|---|---|---|")
     for case in cases:
         for dim in dims:
             if not any((c, d) == (case, dim) for (c, d, n, k) in rows):
@@ -426,7 +443,7 @@ def model(args):
             law = fit_laws(rows, case, dim)
             e = f"(N/K)^{dim - 1}/{dim}"
             f, g, r = law["forward_bytes"], law["ghosts"], law["rebuild_bytes"]
-            say(f"| {case} | {dim} | {f[0]:.1f} {e} | {f[1]:.2f} | {g[0]:.2f} {e} | {g[1]:.2f} | "
+            say(f"| {case} | {dim} | {f[0]:.1f} {e} | {f[1]:.2f} | {law['free_exponent']:.2f} | {g[0]:.2f} {e} | {g[1]:.2f} | "
                 f"{r[0]:.2f} {e} | {r[1]:.2f} | {law['points']} |")
     say("")
     say("### Compute law from `mpipack bench` on this machine\n")
@@ -439,9 +456,9 @@ def model(args):
     figure_data = []
     for net, (lat, bw) in NETWORKS.items():
         say(f"### Predictions, {net}\n")
-        say("Speed-up (efficiency); in brackets where communication passes half of an iteration.\n")
-        say("| start | dim | scaling | " + " | ".join(f"K={k}" for k in KS_MODEL[1:]) + " | comm > half at K |")
-        say("|---|---|---|" + "---|" * (len(KS_MODEL) - 1) + "---|")
+        say("Speed-up (efficiency); * where communication is more than half of an iteration.\n")
+        say("| start | dim | scaling | " + " | ".join(f"K={k}" for k in KS_MODEL[1:]) + " | comm > half at K | efficiency < 0.5 at K |")
+        say("|---|---|---|" + "---|" * (len(KS_MODEL) - 1) + "---|---|")
         for case in cases:
             for dim in dims:
                 ns = sorted({nn for (c, d, nn, kk) in rows if (c, d) == (case, dim)})
@@ -452,13 +469,26 @@ def model(args):
                     sets.append(("weak 1e5/rank", dict(n_total=None, weak=100000)))
                 for label, kw in sets:
                     pred, _, _ = predict(rows, bench, case, dim, lat=lat, bw=bw, **kw)
-                    hp = half_point(pred)
+                    hp, bh = half_point(pred), below_half(pred)
                     cells = []
                     for o in pred[1:]:
                         flag = "*" if o["comm"] > 0.5 * o["T"] else ""
                         cells.append(f"{o['speedup']:.3g} ({o['efficiency']:.2f}){flag}")
-                    say(f"| {case} | {dim} | {label} | " + " | ".join(cells) + f" | {hp if hp else '> 1024'} |")
+                    say(f"| {case} | {dim} | {label} | " + " | ".join(cells) + f" | {hp if hp else '> 1024'} | {bh if bh else '> 1024'} |")
                     figure_data.append((net, case, dim, label, pred))
+        say("")
+        say(f"Where the time of an iteration goes ({net}), microseconds on the slowest rank: "
+            "fixed per-iteration cost t0 + particles + forward + reductions + rebuilds (amortised)\n")
+        say("| start | dim | scaling | K=32 | K=256 | K=1024 |")
+        say("|---|---|---|---|---|---|")
+        for (nn, case, dim, label, pred) in figure_data:
+            if nn != net:
+                continue
+            t0 = compute_law(bench, dim)[0]
+            cells = [f"{t0 * 1e6:.0f} + {(o['comp'] - t0) * 1e6:.0f} + {o['forward'] * 1e6:.0f} + "
+                     f"{o['reductions'] * 1e6:.0f} + {o['rebuild'] * 1e6:.0f}"
+                     for o in pred if o["K"] in (32, 256, 1024)]
+            say(f"| {case} | {dim} | {label} | " + " | ".join(cells) + " |")
         say("")
     say("(* communication more than half of the iteration.)")
     text = "\n".join(lines)
