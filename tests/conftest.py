@@ -131,6 +131,7 @@ SLOW = {
     "tests/test_check.py::test_two_sphere_verdict_against_runs",
     "tests/test_compare.py::test_compare_quick",
     "tests/test_compare.py::test_compare_with_a_peer_curve",
+    "tests/test_comm_counts.py::test_counting_changes_no_result",
     "tests/test_convergence.py::test_a_run_that_cannot_certify_says_why",
     "tests/test_convergence.py::test_defaults_certify",
     "tests/test_convergence.py::test_the_schedule_does_not_depend_on_the_length_unit",

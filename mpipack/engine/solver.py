@@ -334,7 +334,8 @@ class Solver:
         moves.bound += max_move
         if moves.bound > 0.5 * self.skin:
             local = neighbors.max_displacement2(st.x, st.x_build, st.n_local)
-            exact = math.sqrt(self.comm.allreduce(np.array([local]), op="max")[0])
+            with self.comm.charged_to("check"):  # (what the counts call it: parallel.comm)
+                exact = math.sqrt(self.comm.allreduce(np.array([local]), op="max")[0])
             moves.assumed = 0.0  # the bound is now exact (or zero after the rebuild)
             if exact > 0.5 * self.skin or not math.isfinite(exact):
                 self.timers.lap(FORWARD)
@@ -347,7 +348,8 @@ class Solver:
 
     def rebuild(self, rebalance=False, hist=None):
         """Exchange (and rebalance), sort locals by cell, borders, pair rows (``engine.rebuild``)."""
-        rebuild_mod.rebuild(self, rebalance, hist)
+        with self.comm.charged_to("rebuild"):
+            rebuild_mod.rebuild(self, rebalance, hist)
         self.moves.reset()
 
     # ---- the state out (collective) -------------------------------------------------------

@@ -10,6 +10,13 @@ The verbs (as in LAMMPS' comm_brick), each a function of this module:
     to_gid_blocks redistribute particles to the owners of consecutive gid blocks (state out)
     gather_by_gid everything on one rank, in gid order (tests and small N)
 
+Counting (``Comm.count()``, off unless asked for): what this rank sends, by category, in a
+``Counts``: point-to-point messages and their bytes, collective calls and the bytes this rank
+puts in. The verbs charge their own category (``forward``, ``reduce``, ``exchange``,
+``borders``, ``far``); the plain collectives (``allreduce``, ``allgather_object``, ...) charge
+the category in force (``charged_to``: the solver's rebuild charges ``rebuild``, else
+``other``). Off, a verb pays one attribute test; counting never changes what is sent.
+
 Particles travel as a dict of per-particle arrays (``part``: local rows, any names) plus their
 pair history as CSR (``hist`` = (offsets (n+1,), partner gid, lambda)): the layout of
 ``state.State.local_fields`` and ``neighbors.history``. A run on one rank never calls MPI in
@@ -23,6 +30,79 @@ from mpipack.parallel import neighbors
 from mpipack.parallel.state import gather_rows
 
 _FUSED_OP = None
+
+# the kinds of traffic a Counts row holds: point-to-point messages, or one kind of collective
+P2P, ALLREDUCE, ALLTOALL, ALLGATHER, BCAST, GATHER, BARRIER = (
+    "p2p", "allreduce", "alltoall", "allgather", "bcast", "gather", "barrier")
+
+
+class Counts:
+    """What one rank sent, by category and kind: ``rows[category][kind] = [n, bytes]``.
+
+    kind ``p2p``: n messages this rank sent (one per destination rank and buffer; an empty
+    buffer is not sent) and their payload bytes. A collective kind (``allreduce``,
+    ``alltoall``, ``allgather``, ``bcast``, ``gather``, ``barrier``): n calls and the bytes of
+    this rank's send buffer (a pickled object counts its numpy payload, not the pickle). How
+    many messages a collective becomes is the MPI library's algorithm; a model of it is the
+    reader's (``experiments.scaling``). Self-sends are not counted.
+    """
+
+    def __init__(self):
+        self.rows = {}
+        self.category = "other"  # where the plain collectives are charged (``Comm.charged_to``)
+
+    def add(self, category, kind, n, nbytes):
+        kinds = self.rows.get(category)
+        if kinds is None:
+            kinds = self.rows[category] = {}
+        row = kinds.get(kind)
+        if row is None:
+            row = kinds[kind] = [0, 0]
+        row[0] += n
+        row[1] += nbytes
+
+    def snapshot(self):
+        """A copy of the rows: {category: {kind: (n, bytes)}}."""
+        return {c: {k: (v[0], v[1]) for k, v in kinds.items()} for c, kinds in self.rows.items()}
+
+    @staticmethod
+    def difference(after, before):
+        """after - before, two snapshots; rows that did not change are left out."""
+        out = {}
+        for c, kinds in after.items():
+            for k, (n, b) in kinds.items():
+                n0, b0 = before.get(c, {}).get(k, (0, 0))
+                if n != n0 or b != b0:
+                    out.setdefault(c, {})[k] = (n - n0, b - b0)
+        return out
+
+
+class _Charge:
+    """Context of ``Comm.charged_to``: the plain collectives inside charge ``category``."""
+
+    def __init__(self, counts, category):
+        self.counts, self.category, self.before = counts, category, None
+
+    def __enter__(self):
+        if self.counts is not None:
+            self.before, self.counts.category = self.counts.category, self.category
+        return self
+
+    def __exit__(self, *exc):
+        if self.counts is not None:
+            self.counts.category = self.before
+        return False
+
+
+def _payload_bytes(obj):
+    """Bytes of the numpy arrays in an object sent pickled (lists, tuples and dicts walked)."""
+    if isinstance(obj, np.ndarray):
+        return obj.nbytes
+    if isinstance(obj, (list, tuple)):
+        return sum(_payload_bytes(v) for v in obj)
+    if isinstance(obj, dict):
+        return sum(_payload_bytes(v) for v in obj.values())
+    return 8
 
 
 def _fused_op_fn(inbuf, outbuf, datatype):
@@ -45,6 +125,20 @@ def _fused_op():
     return _FUSED_OP
 
 
+_FUSED_TYPES = {}
+
+
+def _fused_type(n):
+    """The whole fused buffer of n int64 as ONE element of a contiguous datatype: the op reads
+    its layout from buf[0], so MPI must never hand it a piece of the buffer. With n int64 of
+    count n, Open MPI's segmented algorithms (ring, reduce-scatter + allgather: 8 ranks and a
+    buffer of 5000, 2 ranks and 1000, 32 ranks and the loop's 32) call the op on slices."""
+    t = _FUSED_TYPES.get(n)
+    if t is None:
+        t = _FUSED_TYPES[n] = MPI.INT64_T.Create_contiguous(n).Commit()
+    return t
+
+
 class Comm:
     """A communicator plus the verbs above. ``rank`` and ``size`` as in MPI."""
 
@@ -58,6 +152,21 @@ class Comm:
             node = self.mpi.Split_type(MPI.COMM_TYPE_SHARED)
             self.ranks_per_node = node.Get_size()
             node.Free()
+        self.counts = None  # a Counts while counting (``count``)
+
+    def count(self, on=True):
+        """Start counting this rank's traffic afresh (``on``) or stop; returns the Counts
+        (or None). Counting is local: no rank needs to agree."""
+        self.counts = Counts() if on else None
+        return self.counts
+
+    def charged_to(self, category):
+        """``with comm.charged_to("rebuild"):`` the plain collectives inside count as ``category``."""
+        return _Charge(self.counts, category)
+
+    def _charge(self, kind, nbytes, category=None):
+        c = self.counts
+        c.add(category or c.category, kind, 1, nbytes)
 
     @classmethod
     def serial(cls):
@@ -85,7 +194,10 @@ class Comm:
         mbits[:] = maxima.view(np.int64)
         mbits[maxima != maxima] = np.iinfo(np.int64).max
         out = np.empty_like(buf)
-        self.mpi.Allreduce(buf, out, op=_fused_op())
+        if self.counts is not None:
+            self.counts.add("reduce", ALLREDUCE, 1, buf.nbytes)
+        whole = _fused_type(buf.size)
+        self.mpi.Allreduce([buf, 1, whole], [out, 1, whole], op=_fused_op())
         g_sums = out[1:1 + n_sum].reshape(sums.shape)
         mbits = out[1 + n_sum:].copy()
         nan = mbits == np.iinfo(np.int64).max
@@ -101,32 +213,49 @@ class Comm:
             return array.copy()
         out = np.empty_like(array)
         mop = {"sum": MPI.SUM, "min": MPI.MIN, "max": MPI.MAX}[op]
+        if self.counts is not None:
+            self._charge(ALLREDUCE, array.nbytes)
         self.mpi.Allreduce(array, out, op=mop)
         return out
 
-    def allgather_object(self, obj):
-        return [obj] if self.size == 1 else self.mpi.allgather(obj)
+    def allgather_object(self, obj, category=None):
+        if self.size == 1:
+            return [obj]
+        if self.counts is not None:
+            self._charge(ALLGATHER, _payload_bytes(obj), category)
+        return self.mpi.allgather(obj)
 
     def bcast_object(self, obj, root=0):
-        return obj if self.size == 1 else self.mpi.bcast(obj, root=root)
+        if self.size == 1:
+            return obj
+        if self.counts is not None:
+            self._charge(BCAST, _payload_bytes(obj) if self.rank == root else 0)
+        return self.mpi.bcast(obj, root=root)
 
     def barrier(self):
         if self.size > 1:
+            if self.counts is not None:
+                self._charge(BARRIER, 0)
             self.mpi.Barrier()
 
     def abort(self, code):
         self.mpi.Abort(code)
 
     # ---- particle movement -----------------------------------------------------------------
-    def alltoallv(self, arrays, send_counts):
+    def alltoallv(self, arrays, send_counts, category=None):
         """Send rows of each array to ranks: rows of ``arrays[name]`` are grouped by destination,
         ``send_counts[name][r]`` rows to rank r (name-specific counts allow ragged payloads).
+        ``category``: what the traffic is charged to while counting (default: the one in force).
 
         Returns (received arrays, recv_counts per name), rows grouped by source rank.
+        One Alltoall of the counts, then one Alltoallv per array (counted as one message per
+        array and destination rank with rows).
         """
         names = list(arrays)
         counts = np.array([send_counts[n] for n in names], dtype=np.int64).T.copy()  # (P, n)
         recv = np.empty_like(counts)
+        if self.counts is not None:
+            self._count_alltoallv(arrays, counts, category or self.counts.category)
         self.mpi.Alltoall(counts, recv)
         out = {}
         out_counts = {}
@@ -143,6 +272,18 @@ class Comm:
             out[name] = r
             out_counts[name] = recv[:, q].copy()
         return out, out_counts
+
+    def _count_alltoallv(self, arrays, counts, category):
+        """Charge an ``alltoallv``: the Alltoall of the (P, names) counts (this rank's row of
+        counts to each other rank), then each array's rows to each other rank."""
+        c, me = self.counts, self.rank
+        c.add(category, ALLTOALL, 1, (self.size - 1) * counts.shape[1] * counts.itemsize)
+        for q, name in enumerate(arrays):
+            a = arrays[name]
+            row_bytes = a.itemsize * (int(np.prod(a.shape[1:])) if a.ndim > 1 else 1)
+            rows = counts[:, q]
+            peers = int(np.count_nonzero(rows)) - (1 if rows[me] > 0 else 0)
+            c.add(category, P2P, peers, (int(rows.sum()) - int(rows[me])) * row_bytes)
 
 
 class GhostPlan:
@@ -167,7 +308,7 @@ class GhostPlan:
         return GhostPlan([], z, np.empty(0, dtype=np.int64), [], z)
 
 
-def _send_copies(comm, dest_offsets, dest_idx, fields):
+def _send_copies(comm, dest_offsets, dest_idx, fields, category="borders"):
     """Send copies of local rows to other ranks: one round of the ghost exchange.
 
     dest_offsets (P+1,), dest_idx: rank r gets local rows dest_idx[dest_offsets[r]:...];
@@ -177,7 +318,7 @@ def _send_copies(comm, dest_offsets, dest_idx, fields):
     P = comm.size
     counts = np.diff(dest_offsets)
     arrays = {k: np.ascontiguousarray(v[dest_idx]) for k, v in fields.items()}
-    got, rcounts = comm.alltoallv(arrays, {k: counts for k in fields})
+    got, rcounts = comm.alltoallv(arrays, {k: counts for k in fields}, category)
     rc = rcounts[next(iter(fields))]
     send_ranks = [r for r in range(P) if counts[r] > 0]
     send_offsets = np.concatenate(([0], np.cumsum([counts[r] for r in send_ranks]))).astype(np.int64)
@@ -199,6 +340,8 @@ def forward(comm, plan, x, n_local):
     if plan._sendbuf is None or plan._sendbuf.shape != (n_send, b):
         plan._sendbuf = np.empty((n_send, b))
     np.take(x, plan.send_idx, axis=0, out=plan._sendbuf)
+    if comm.counts is not None:
+        comm.counts.add("forward", P2P, len(plan.send_ranks), plan._sendbuf.nbytes)
     reqs = []
     for m, r in enumerate(plan.recv_ranks):
         lo = n_local + plan.recv_offsets[m]
@@ -229,7 +372,7 @@ def exchange(comm, owners, part, hist):
     send.update({"h_count": h_counts, "h_gid": hist_gid[h_idx], "h_lam": hist_lam[h_idx]})
     send_counts = {k: counts for k in part}
     send_counts.update({"h_count": counts, "h_gid": h_per_rank, "h_lam": h_per_rank})
-    got, _ = comm.alltoallv(send, send_counts)
+    got, _ = comm.alltoallv(send, send_counts, "exchange")
     s_off, s_idx = gather_rows(hist_off, stay)
     counts_all = np.concatenate([np.diff(s_off), got["h_count"]])
     new_off = np.zeros(counts_all.shape[0] + 1, dtype=np.int64)
@@ -256,7 +399,7 @@ def borders(comm, dest_offsets, dest_idx, fields, hist_gid):
     n_local = gid.shape[0]
     present = np.concatenate([gid, got["gid"]])
     missing = neighbors.missing_partners(present, hist_gid)  # sorted, unique
-    requests = comm.allgather_object(missing)
+    requests = comm.allgather_object(missing, "far")
     n_far = int(sum(len(r) for r in requests))
     if n_far == 0:
         return plan, got, 0
@@ -278,7 +421,8 @@ def borders(comm, dest_offsets, dest_idx, fields, hist_gid):
     o = np.argsort(ranks, kind="stable")
     offsets = np.zeros(comm.size + 1, dtype=np.int64)
     np.cumsum(np.bincount(ranks, minlength=comm.size), out=offsets[1:])
-    plan, got = _send_copies(comm, offsets, rows[o], fields)
+    # the ghosts are sent again with the far partners among them: charged to "far"
+    plan, got = _send_copies(comm, offsets, rows[o], fields, "far")
     return plan, got, n_far
 
 
@@ -310,6 +454,8 @@ def gather_by_gid(comm, arrays, root=0):
     """
     ragged = arrays.pop("_ragged", {})
     mine = (arrays, ragged)
+    if comm.size > 1 and comm.counts is not None:
+        comm._charge(GATHER, _payload_bytes(mine))
     parts = [mine] if comm.size == 1 else comm.mpi.gather(mine, root=root)
     if comm.rank != root:
         return None
