@@ -360,7 +360,7 @@ def contain(scene, x, diam):
 def fill_container(scene, gids, diam):
     """Positions uniform in the scene's container, each sphere's centre at least its radius
     inside (an open cylinder up to twice its radius or its bed, whichever is taller), from
-    (seed, gid) (streams 10..17: the same on any rank count): the schedule's step 0 in a
+    (seed, gid) (streams 10..19: the same on any rank count): the schedule's step 0 in a
     container (``methods.fire_al_schedule``), which spreads a dense start over the room the
     walls leave instead of into a ball."""
     c, dim = scene.container, scene.dim
