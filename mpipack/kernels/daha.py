@@ -444,17 +444,17 @@ N_MET_MAX = 4
 
 
 @njit(cache=True, inline="always")
-def entry_multiplier(form, lam, phi, r2, dij, beta, lambda_mode, pen, lam_floor, contact_tol):
-    """The multiplier of one stored pair under ``lambda_mode`` (see above), before lam_scale:
-    the stored lambda, lambda + beta phi clipped at 0 ((2.10b), UPDATE and PEEK), or the force
-    multiplier of a pair in contact to contact_tol (FORCE)."""
+def _multiplier(form, lam, phi, size, apart, beta, lambda_mode, pen, lam_floor):
+    """A constraint's multiplier under ``lambda_mode`` (see above), before lam_scale: the stored
+    lambda, lambda + beta phi clipped at 0 ((2.10b), UPDATE and PEEK), or the force multiplier
+    (FORCE) with phi in units of size^p, 0 when the constraint is ``apart`` (not in contact)."""
     if lambda_mode == LAMBDA_FORCE:
-        unit = 1.0 / (dij * dij) if form == SMOOTH else 1.0 / dij
+        unit = 1.0 / (size * size) if form == SMOOTH else 1.0 / size
         w = lam if lam > lam_floor else lam_floor
         lam = lam + pen * w * phi * unit
         if lam < 0.0:
             lam = 0.0
-        if r2 > (dij * (1.0 + contact_tol)) ** 2:
+        if apart:
             lam = 0.0
     elif lambda_mode != LAMBDA_STORED:
         lam = lam + beta * phi
@@ -464,22 +464,19 @@ def entry_multiplier(form, lam, phi, r2, dij, beta, lambda_mode, pen, lam_floor,
 
 
 @njit(cache=True, inline="always")
+def entry_multiplier(form, lam, phi, r2, dij, beta, lambda_mode, pen, lam_floor, contact_tol):
+    """The multiplier of one stored pair (``_multiplier``; size d_ij, in contact to contact_tol
+    when r <= d_ij (1 + tol))."""
+    return _multiplier(form, lam, phi, dij, r2 > (dij * (1.0 + contact_tol)) ** 2, beta, lambda_mode, pen,
+                       lam_floor)
+
+
+@njit(cache=True, inline="always")
 def wall_multiplier(form, lam, phi, s, di, beta, lambda_mode, pen, lam_floor, contact_tol):
-    """``entry_multiplier`` for a wall constraint of a sphere of diameter di at distance s inside
-    (``kernels.walls``): its size unit is di^p, and it is in contact when s <= (di/2)(1 + tol)."""
-    if lambda_mode == LAMBDA_FORCE:
-        unit = 1.0 / (di * di) if form == SMOOTH else 1.0 / di
-        w = lam if lam > lam_floor else lam_floor
-        lam = lam + pen * w * phi * unit
-        if lam < 0.0:
-            lam = 0.0
-        if s > 0.5 * di * (1.0 + contact_tol):
-            lam = 0.0
-    elif lambda_mode != LAMBDA_STORED:
-        lam = lam + beta * phi
-        if lam < 0.0:
-            lam = 0.0
-    return lam
+    """The multiplier of a wall constraint of a sphere of diameter di at distance s inside
+    (``kernels.walls``; ``_multiplier`` with size d_i, in contact when s <= (d_i/2)(1 + tol))."""
+    return _multiplier(form, lam, phi, di, s > 0.5 * di * (1.0 + contact_tol), beta, lambda_mode, pen,
+                       lam_floor)
 
 
 @njit(cache=True, inline="always")

@@ -64,6 +64,34 @@ def _coordinate(a1, a2, a3, xi, xp, pw, f):
 
 
 @njit(cache=True, inline="always")
+def _term(lam, phi, phin, g2, hess, unit, a3, a4, beta, lam_floor, clip, weighted_dual, update_lambda):
+    """One constraint's part of a pass (a pair's row entry or a sphere's wall), see the module
+    docstring: (lam after the dual step, the force multiplier m, its share of the row's dual
+    gain, its share of the Gershgorin row). phin = phi unit, unit = 1 / (size)^p under clip."""
+    if update_lambda:
+        wd = 1.0
+        pd = phi
+        if weighted_dual:
+            wd = lam if lam > lam_floor else lam_floor
+            pd = phin
+        lam = lam + beta * wd * pd
+        if lam < 0.0:
+            lam = 0.0
+    w = lam if lam > lam_floor else lam_floor
+    if clip:
+        m = a3 * lam + a4 * w * phin
+        if m < 0.0:
+            m = 0.0
+    elif lam > 0.0:
+        m = a3 * lam + a4 * w * phi
+    else:
+        m = 0.0
+    gain = g2 if (lam > 0.0 or phi > 0.0) else 0.0
+    row = a4 * w * g2 * unit + abs(m) * hess if m != 0.0 else 0.0
+    return lam, m, gain, row
+
+
+@njit(cache=True, inline="always")
 def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda,
                   walls, wall_lambda, xbar, pot, a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual,
                   vmax, update_lambda, acc, maxima, all_sums):
@@ -109,36 +137,18 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
             unit = 1.0
             if clip:
                 unit = 1.0 / (dij * dij) if form == SMOOTH else 1.0 / dij
-            phin = phi * unit
-            lam = pair_lambda[e]
+            lam, m, gain_i, row_i = _term(pair_lambda[e], phi, phi * unit, g2, hess, unit, a3, a4, beta,
+                                          lam_floor, clip, weighted_dual, update_lambda)
             if update_lambda:
-                wd = 1.0
-                pd = phi
-                if weighted_dual:
-                    wd = lam if lam > lam_floor else lam_floor
-                    pd = phin
-                lam = lam + beta * wd * pd
-                if lam < 0.0:
-                    lam = 0.0
                 pair_lambda[e] = lam
             if phi > 0.0:
                 if r2 < min_ratio2 * (dij * dij):
                     min_ratio2 = r2 / (dij * dij)
-            if lam > 0.0 or phi > 0.0:
-                gain += g2
-            w = lam if lam > lam_floor else lam_floor
-            if clip:
-                m = a3 * lam + a4 * w * phin
-                if m < 0.0:
-                    m = 0.0
-            elif lam > 0.0:
-                m = a3 * lam + a4 * w * phi
-            else:
-                m = 0.0
+            gain += gain_i
             if lam > 0.0:
                 n_active += 1
             if m != 0.0:
-                row += a4 * w * g2 * unit + abs(m) * hess
+                row += row_i
                 g = gradient_scale(form, m, r)  # m grad_i phi = -g (X_i - X_j)
                 f0 -= g * d0
                 f1 -= g * d1
@@ -153,35 +163,17 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
             unit = 1.0
             if clip:
                 unit = 1.0 / (di * di) if form == SMOOTH else 1.0 / di
-            phin = phi * unit
-            lam = wall_lambda[i, wall]
+            lam, m, gain_i, row_i = _term(wall_lambda[i, wall], phi, phi * unit, g2, hess, unit, a3, a4, beta,
+                                          lam_floor, clip, weighted_dual, update_lambda)
             if update_lambda:
-                wd = 1.0
-                pd = phi
-                if weighted_dual:
-                    wd = lam if lam > lam_floor else lam_floor
-                    pd = phin
-                lam = lam + beta * wd * pd
-                if lam < 0.0:
-                    lam = 0.0
                 wall_lambda[i, wall] = lam
             if phi > 0.0 and (0.5 * di - s) > wall_overlap * (0.5 * di):
                 wall_overlap = (0.5 * di - s) / (0.5 * di)
-            if lam > 0.0 or phi > 0.0:
-                gain += g2
-            wgt = lam if lam > lam_floor else lam_floor
-            if clip:
-                m = a3 * lam + a4 * wgt * phin
-                if m < 0.0:
-                    m = 0.0
-            elif lam > 0.0:
-                m = a3 * lam + a4 * wgt * phi
-            else:
-                m = 0.0
+            gain += gain_i
             if lam > 0.0:
                 n_active += 2
             if m != 0.0:
-                row += a4 * wgt * g2 * unit + abs(m) * hess
+                row += row_i
                 g = m * cw  # m grad_i phi_iw = -g n_iw
                 f0 -= g * n0
                 f1 -= g * n1
