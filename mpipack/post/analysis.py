@@ -156,6 +156,7 @@ class Analysis:
             warn.append(f"packing fraction {phi:.4f} in the container above the densest packing's "
                         f"{measures.MAX_DENSITY[dim]:.4f}: the spheres overlap")
         parts = {}
+        clip = None  # the nearest-wall profile's region: below the bed's top when the spheres fill part of it
         span = box.axis_range(c, dim, top)
         if span is not None:
             z0, z1 = span
@@ -177,6 +178,8 @@ class Analysis:
             surface = float(self.comm.allreduce(
                 np.array([(x[:, dim - 1] + 0.5 * diam).max() if n else -np.inf]), "max")[0])
             bed = (edges[:-1] >= z0 + 2 * d) & (edges[1:] <= surface - 2 * d)
+            if surface < z1 - 2 * d or (c.kind == "cylinder" and c.height is None):
+                clip = surface - 2 * d
             if bed.any():
                 phi_bed = float(covered[bed].sum() / slab[bed].sum())
                 summary["bed"] = {"from": float(edges[:-1][bed][0]), "to": float(edges[1:][bed][-1]),
@@ -186,22 +189,40 @@ class Analysis:
                                 f"fraction counts the empty room above; the bed's (slabs {2:d} d from the floor "
                                 f"and the surface) is {phi_bed:.4f}")
         edges = np.arange(box.WALL_RANGE_D * box.WALL_BINS_PER_D + 1) * (d / box.WALL_BINS_PER_D)
-        covered, shell, centres = box.wall_profile(self.comm, c, dim, x, diam, edges, top)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            prof = np.where(shell > 0, covered / np.where(shell > 0, shell, 1.0), np.nan)
         mid = 0.5 * (edges[1:] + edges[:-1]) / d
         first = mid <= 1.5
-        q = int(np.nanargmax(np.where(first & np.isfinite(prof), prof, -np.inf)))
-        qc = int(np.argmax(np.where(first, centres, -1)))
-        summary["wall_profile"] = {"bin_over_d": 1.0 / box.WALL_BINS_PER_D, "range_over_d": box.WALL_RANGE_D,
-                                   "pooled": "each wall's slabs (shells) of its own distance, summed over the walls",
-                                   "first_peak_t_over_d": float(mid[q]), "first_peak_phi": float(prof[q]),
-                                   "centres_first_peak_t_over_d": float(mid[qc]),
-                                   "centres_within_range": int(centres.sum())}
+
+        def peaks(covered, shell, centres):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                prof = np.where(shell > 0, covered / np.where(shell > 0, shell, 1.0), np.nan)
+            q = int(np.nanargmax(np.where(first & np.isfinite(prof), prof, -np.inf)))
+            qc = int(np.argmax(np.where(first, centres, -1)))
+            return prof, {"first_peak_t_over_d": float(mid[q]), "first_peak_phi": float(prof[q]),
+                          "centres_first_peak_t_over_d": float(mid[qc]), "centres_within_range": int(centres.sum())}
+
+        # the headline: from the nearest wall (C_t the container shrunk by t, clipped at the bed's top)
+        covered, shell, centres = box.nearest_wall_profile(self.comm, c, dim, x, diam, edges, clip)
+        prof, found = peaks(covered, shell, centres)
+        summary["wall_profile"] = {"distance": "to the nearest wall", "bin_over_d": 1.0 / box.WALL_BINS_PER_D,
+                                   "range_over_d": box.WALL_RANGE_D, "clip_height": clip,
+                                   "region": ("the container" if clip is None else
+                                              "the container below clip_height (2 d under the spheres' free "
+                                              "surface, which is no wall)"),
+                                   **found, "covered": float(covered.sum()), "shells": float(shell.sum())}
         parts["wall"] = ({"t_from": edges[:-1], "t_to": edges[1:], "t_over_d": mid, "covered": covered,
                           "shell": shell, "phi": prof, "centres": centres},
-                         {"x": mid, "y": prof, "xlabel": "distance from the wall / d",
-                          "ylabel": "covered fraction (pooled over the walls)", "bars": centres})
+                         {"x": mid, "y": prof, "xlabel": "distance from the nearest wall / d",
+                          "ylabel": "covered fraction", "bars": centres})
+        # each wall's own distance, pooled over the walls
+        covered, shell, centres = box.wall_profile(self.comm, c, dim, x, diam, edges, top)
+        prof, found = peaks(covered, shell, centres)
+        summary["wall_profile_pooled"] = {"bin_over_d": 1.0 / box.WALL_BINS_PER_D, "range_over_d": box.WALL_RANGE_D,
+                                          "pooled": "each wall's slabs (shells) of its own distance, summed over the walls",
+                                          **found}
+        parts["wall-pooled"] = ({"t_from": edges[:-1], "t_to": edges[1:], "t_over_d": mid, "covered": covered,
+                                 "shell": shell, "phi": prof, "centres": centres},
+                                {"x": mid, "y": prof, "xlabel": "distance from each wall / d",
+                                 "ylabel": "covered fraction (pooled over the walls)", "bars": centres})
         return summary, parts
 
     def without_rattlers(self, gap=1e-3):

@@ -33,6 +33,12 @@ Wall profile      phi(t), t a point's distance inside a wall, bins of d_mean/10 
                   lens for a sphere), the shells' measures closed forms (``wall_inner_measure``).
                   A point near two walls counts for each. Also the centres' histogram of
                   s_iw (pooled): the layering of the wall.
+Nearest wall      phi(t_1, t_2) over the points whose nearest wall lies in [t_1, t_2): C_t the
+                  container shrunk by t (clipped at a fixed height below a free surface), the
+                  points at least t from every wall (convex containers), phi = sum_i (|B_i ∩
+                  C_t1| - |B_i ∩ C_t2|) / (|C_t1| - |C_t2|), |B_i ∩ C_t| whole (``ball_in_shrunk``:
+                  closed forms in 1D and 2D and for a sphere, the slices' closed-form areas by
+                  Gauss-Legendre in 3D), each ball's differences summed exactly.
 """
 
 import math
@@ -322,5 +328,204 @@ def wall_profile(comm, c, dim, x, diam, edges, top=None):
     covered = np.array([exactsum.value(acc, q) for q in range(nbins)])
     shell = np.array([sum(wall_inner_measure(c, dim, w, float(edges[q]), top)
                           - wall_inner_measure(c, dim, w, float(edges[q + 1]), top) for w in range(c.walls.shape[0]))
+                      for q in range(nbins)])
+    return covered, shell, halo.total(comm, centres)
+
+
+# ---- the profile from the nearest wall -------------------------------------------------------------
+#
+# C_t = the container shrunk by t (a box: lo + t, hi - t; a cylinder: radius - t, floor + t, lid - t;
+# a sphere: radius - t), clipped at a height ``clip`` fixed independent of t (the bed's top: a free
+# surface is no wall). In a convex container the points whose nearest wall is at least t away are
+# exactly C_t, so the points whose nearest wall lies in [t_1, t_2) are C_t1 \ C_t2 and
+#   phi(t_1, t_2) = sum_i (|B_i ∩ C_t1| - |B_i ∩ C_t2|) / (|C_t1| - |C_t2|).
+
+def _smooth_pieces(f, lo, hi, breaks):
+    """int_lo^hi f(z) dz, f (vectorised) smooth between the points ``breaks`` (where it may
+    behave like (z - z_b)^(1/2) or ^(3/2)): Gauss-Legendre on each piece [p, q] after
+    z = p + (q - p) (3 u^2 - 2 u^3), which flattens both ends (dz = 6 (q - p) u (1 - u) du)."""
+    if hi <= lo:
+        return 0.0
+    cuts = sorted({lo, hi, *(b for b in breaks if lo < b < hi)})
+    u, w = _nodes()
+    jac = w * 6.0 * u * (1.0 - u)
+    shape = u * u * (3.0 - 2.0 * u)
+    total = 0.0
+    for p, q in zip(cuts[:-1], cuts[1:]):
+        total += float(np.dot(jac, f(p + (q - p) * shape))) * (q - p)
+    return total
+
+
+def _half_disc_primitive(a, x):
+    """W(x) = int_{-a}^{x} sqrt(a^2 - u^2) du for x in [-a, a] (arrays; 0 where a = 0)."""
+    safe = np.where(a > 0, a, 1.0)
+    return np.where(a > 0, 0.5 * (x * np.sqrt(np.maximum(a * a - x * x, 0.0))
+                                  + a * a * np.arcsin(np.clip(x / safe, -1.0, 1.0))) + 0.25 * math.pi * a * a, 0.0)
+
+
+def _below(a, x1, x2, y):
+    """The area of the disc of radius a (array) about the origin with x1 <= x <= x2 and y' < y:
+    int_x1^x2 (clamp(y, -w, w) + w) dx, w = sqrt(a^2 - x^2); with b = sqrt(a^2 - y^2) the
+    integrand is w + sign(y) w for |x| >= b and y + w for |x| < b (closed form)."""
+    sgn = 1.0 if y >= 0 else -1.0
+    b = np.sqrt(np.maximum(a * a - y * y, 0.0))
+
+    def prim(x):
+        x = np.clip(x, -a, a)
+        return (_half_disc_primitive(a, x) + sgn * _half_disc_primitive(a, np.minimum(x, -b))
+                + y * (np.clip(x, -b, b) + b)
+                + sgn * (_half_disc_primitive(a, np.maximum(x, b)) - _half_disc_primitive(a, b)))
+    return prim(np.asarray(x2, dtype=float)) - prim(np.asarray(x1, dtype=float))
+
+
+def disc_in_rectangle(a, x1, x2, y1, y2):
+    """|disc(0, a) ∩ [x1, x2] x [y1, y2]| for an array of radii a (closed form)."""
+    a = np.asarray(a, dtype=float)
+    if x2 <= x1 or y2 <= y1:
+        return np.zeros_like(a)
+    return np.maximum(_below(a, x1, x2, y2) - _below(a, x1, x2, y1), 0.0)
+
+
+def _segment_v(rho, theta):
+    """``_segment`` on arrays."""
+    x = 2.0 * theta
+    x2 = x * x
+    series = rho * rho * x * x2 * (1.0 / 12.0 - x2 * (1.0 / 240.0 - x2 * (1.0 / 10080.0 - x2 * (
+        1.0 / 725760.0 - x2 / 79833600.0))))
+    return np.where(theta < 0.1, series, rho * rho * (theta - np.sin(theta) * np.cos(theta)))
+
+
+def disc_outside_circle(a, big, d):
+    """``_outside_area`` on an array of radii a (the disc's centre d from the circle's)."""
+    a = np.asarray(a, dtype=float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dd = max(d, 1e-300)
+        u = (a - (d - big)) * (a + (d - big)) / (2.0 * dd)
+        y = np.sqrt(np.maximum(u * (2.0 * big - u), 0.0))
+        e = ((big - d) * (big + d) - a * a) / (2.0 * dd)
+        mid = np.maximum(_segment_v(a, np.arctan2(y, e)) - _segment_v(big, np.arctan2(y, big - u)), 0.0)
+    return np.where(d >= a + big, math.pi * a * a,
+                    np.where(d + a <= big, 0.0, np.where(d + big <= a, math.pi * (a * a - big * big), mid)))
+
+
+def shrunk(c, dim, t, clip=None):
+    """C_t as bounds: a box's (lo (dim,), hi (dim,)); a cylinder's (radius, floor, top); a
+    sphere's radius. ``clip`` caps the last coordinate (box, cylinder)."""
+    if c.kind == "box":
+        lo = np.array([float(v) + t for v in c.lo[:dim]])
+        hi = np.array([float(v) - t for v in c.hi[:dim]])
+        if clip is not None:
+            hi[-1] = min(hi[-1], clip)
+        return lo, hi
+    if c.kind == "cylinder":
+        z0 = float(c.centre[2])
+        top = z0 + float(c.height) - t if c.height is not None else math.inf
+        if clip is not None:
+            top = min(top, clip)
+        return float(c.radius) - t, z0 + t, top
+    return float(c.radius) - t
+
+
+def shrunk_measure(c, dim, t, clip=None):
+    """|C_t| (clipped)."""
+    b = shrunk(c, dim, t, clip)
+    if c.kind == "box":
+        return math.prod(max(h - l, 0.0) for l, h in zip(b[0], b[1]))
+    if c.kind == "cylinder":
+        radius, floor, top = b
+        return math.pi * max(radius, 0.0) ** 2 * max(top - floor, 0.0) if math.isfinite(top) else math.inf
+    return metrics.ball_measure(dim, max(b, 0.0))
+
+
+def ball_in_shrunk(c, dim, p, r, t, clip=None):
+    """|B(p, r) ∩ C_t| (C_t clipped at ``clip``): 1D an interval, 2D a box's disc ∩ rectangle
+    (closed form), a sphere's lens (closed form); 3D a box's or cylinder's by the slices along z,
+    int |disc(sqrt(r^2 - z^2)) ∩ slice of C_t| dz, the slice's area closed form (a rectangle's,
+    ``disc_in_rectangle``; a circle's lens, ``disc_outside_circle``), by ``_smooth_pieces`` over
+    the pieces between the heights where the slice's disc meets a side, a corner or the circle."""
+    b = shrunk(c, dim, t, clip)
+    if c.kind == "sphere":
+        if b <= 0.0:
+            return 0.0
+        dist = math.sqrt(sum((float(p[k]) - float(c.centre[k])) ** 2 for k in range(dim)))
+        return metrics.intersection(dim, dist, r, b)
+    if c.kind == "box":
+        lo, hi = b[0] - np.asarray(p[:dim], float), b[1] - np.asarray(p[:dim], float)  # about the centre
+        if (hi <= lo).any() or (lo >= r).any() or (hi <= -r).any():
+            return 0.0
+        if (lo <= -r).all() and (hi >= r).all():
+            return metrics.ball_measure(dim, r)
+        if dim == 1:
+            return min(hi[0], r) - max(lo[0], -r)
+        if dim == 2:
+            return float(disc_in_rectangle(np.array([r]), lo[0], hi[0], lo[1], hi[1])[0])
+        edges = [float(v) for v in (lo[0], hi[0], lo[1], hi[1])]
+        corners = [ex * ex + ey * ey for ex in edges[:2] for ey in edges[2:]]
+        breaks = [math.sqrt(r * r - e2) for e2 in [e * e for e in edges] + corners if e2 < r * r]
+        breaks += [-v for v in breaks]
+        return _smooth_pieces(lambda z: disc_in_rectangle(np.sqrt(np.maximum(r * r - z * z, 0.0)), *edges),
+                              max(float(lo[2]), -r), min(float(hi[2]), r), breaks)
+    radius, floor, top = b
+    z_lo, z_hi = max(floor - float(p[2]), -r), min(top - float(p[2]), r)
+    if radius <= 0.0 or z_hi <= z_lo:
+        return 0.0
+    rho = math.hypot(float(p[0]) - float(c.centre[0]), float(p[1]) - float(c.centre[1]))
+    if rho >= radius + r:
+        return 0.0
+    if rho + r <= radius and z_lo <= -r and z_hi >= r:
+        return metrics.ball_measure(3, r)
+    breaks = [math.sqrt(r * r - e * e) for e in (radius - rho, radius + rho) if abs(e) < r]
+    breaks += [-v for v in breaks]
+
+    def inside(z):
+        a = np.sqrt(np.maximum(r * r - z * z, 0.0))
+        return np.maximum(math.pi * a * a - disc_outside_circle(a, radius, rho), 0.0)
+    return _smooth_pieces(inside, z_lo, z_hi, breaks)
+
+
+def nearest_wall_distances(c, dim, x, clip=None):
+    """(m,) each centre's distance to its nearest wall (min_w s_iw), and (m,) bool: the centre
+    lies below the clip height (the profile's region)."""
+    s = gaps(c.walls, x) if len(x) else np.zeros((0, c.walls.shape[0]))
+    near = s.min(axis=1) if len(x) else np.zeros(0)
+    below = np.ones(len(x), bool) if clip is None else x[:, dim - 1] <= clip
+    return near, below
+
+
+def nearest_wall_profile(comm, c, dim, x, diam, edges, clip=None):
+    """The profile from the nearest wall: (covered (K,), shell (K,), centres (K,) int) with
+    covered_q = sum_i |B_i ∩ C_q| - |B_i ∩ C_q+1| (C_q the container shrunk by edges_q and
+    clipped, ``ball_in_shrunk``; exact sums), shell_q = |C_q| - |C_q+1| and centres_q the centres
+    below the clip whose nearest wall lies in [edges_q, edges_q+1). Each sphere's numbers from
+    itself alone: the same bits on any rank count."""
+    nbins = len(edges) - 1
+    width = float(edges[1] - edges[0])
+    r = 0.5 * np.asarray(diam, float)
+    near, below = nearest_wall_distances(c, dim, x, clip)
+    kc = np.floor(near / width).astype(np.int64)
+    ok = below & (near >= 0) & (kc < nbins)
+    centres = np.bincount(kc[ok], minlength=nbins)[:nbins]
+    cols, vals = [], []
+    for i in np.flatnonzero(near - r < float(edges[-1])):
+        ri, mi = float(r[i]), float(near[i])
+        if clip is not None and float(x[i, dim - 1]) - ri >= clip:
+            continue
+        # |B_i ∩ C_t| is constant for t <= m_i - r_i (only the clip cuts it) and 0 from m_i + r_i
+        q0 = max(int(np.searchsorted(edges, mi - ri, side="right")) - 1, 0)
+        q1 = min(int(np.searchsorted(edges, mi + ri, side="left")), nbins)
+        g = [ball_in_shrunk(c, dim, x[i], ri, float(edges[q]), clip) for q in range(q0, q1 + 1)]
+        for q in range(q0, q1):
+            cols.append(q)
+            vals.append(max(g[q - q0] - g[q - q0 + 1], 0.0))
+    cols, vals = np.asarray(cols, np.int64), np.asarray(vals, np.float64)
+    order = np.argsort(cols, kind="stable")
+    cols, vals = cols[order], vals[order]
+    cuts = np.searchsorted(cols, np.arange(nbins + 1))
+    acc = exactsum.new_accumulator(nbins)
+    for q in range(nbins):
+        exactsum.accumulate(np.ascontiguousarray(vals[cuts[q]:cuts[q + 1]]), acc, q)
+    acc = comm.allreduce(acc)
+    covered = np.array([exactsum.value(acc, q) for q in range(nbins)])
+    shell = np.array([shrunk_measure(c, dim, float(edges[q]), clip) - shrunk_measure(c, dim, float(edges[q + 1]), clip)
                       for q in range(nbins)])
     return covered, shell, halo.total(comm, centres)
