@@ -682,9 +682,6 @@ def _check_potential(scene):
             raise SceneError(f"key 'potential.{key}' does not apply to potential.kind = {pot['kind']!r}")
     if pot["kind"] == "centre":
         return
-    if scene["method"]["name"] in ("nap", "nav"):
-        raise SceneError(f"key 'potential.kind': method {scene['method']['name']!r} (nested) takes only "
-                         f"the centre potential yet")
     if pot["kind"] == "gravity":
         if scene["container"]["kind"] == "none":
             raise SceneError("potential.kind = \"gravity\" needs a container to hold the spheres "
@@ -723,9 +720,6 @@ def _check_container(scene):
             raise SceneError(f"container.kind = {kind!r} needs container.{key}")
     if kind == "none":
         return
-    if scene["method"]["name"] in ("nap", "nav"):
-        raise SceneError(f"key 'container.kind': walls are constraints of DAHA, AHA and the fire-al "
-                         f"schedule; method {scene['method']['name']!r} (nested) does not take them yet")
     law = Particles(**scene["particles"])
     d_max = law.d_max
     if kind == "box":

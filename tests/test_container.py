@@ -147,8 +147,6 @@ def test_restart_onto_another_rank_count(tmp_path):
      "does not apply"),
     (["container.kind=cylinder", "container.centre=[0, 0]", "container.radius=30"], "3D container"),
     (["container.kind=sphere", "container.centre=[0, 0]", "container.radius=20"], "too small"),
-    (["container.kind=sphere", "container.centre=[0, 0]", "container.radius=40", "method.name=nap",
-      "method.alpha=0.1", "method.beta=0.1"], "nested"),
     (["potential.kind=point"], "needs potential.point"),
     (["potential.kind=magnetic"], "must be one of"),
     (["potential.kind=gravity"], "needs a container"),
@@ -159,6 +157,21 @@ def test_restart_onto_another_rank_count(tmp_path):
 def test_bad_container_and_potential_keys(sets, words):
     with pytest.raises(config.SceneError, match=words):
         config.load(None, sets)
+
+
+@pytest.mark.parametrize("method", ["nap", "nav"])
+@pytest.mark.parametrize("sets", [
+    ["container.kind=sphere", "container.centre=[0, 0]", "container.radius=40"],
+    ["potential.kind=point", "potential.point=[1, 2]"],
+    ["potential.kind=gravity"] + BOX2 + ["n=100"],
+])
+def test_nested_methods_take_containers_and_potentials(method, sets):
+    """NAP and NAV, like DAHA, take the walls and the potentials (their runs:
+    tests/test_container_nested.py)."""
+    from mpipack.methods import for_scene
+    scene = config.load(None, sets + [f"method.name={method}", "method.alpha=0.1", "method.beta=0.1"])
+    m = for_scene(scene)
+    assert m.name == method and m.gravity == (scene.potential.kind == "gravity")
 
 
 @pytest.mark.mpi

@@ -294,6 +294,11 @@ def multipliers_and_step_ns(x, *args):
 #   NAV (2.17a), written for Y = X^p + tau V (so V = (Y - X^p)/tau):
 #                cy = 1 - alpha, cp = alpha, cw = alpha tau, cf = alpha tau^2, w = X^p (Xbar of X^p)
 #
+# w_i - Xbar is grad W (``kernels.potential``): the point potential's w_i - P (P given as xbar),
+# gravity's m_i g e_b. A container's walls are linearised about X^p like the pairs (2.15):
+# phi^p_iw = c_i (d_i/2 - s_iw(X^p) - n_iw(X^p).(Y_i - X^p_i)), grad_{Y_i} phi^p_iw = -c_i n_iw(X^p)
+# (``kernels.walls``; exact for a plane), with lambda_iw updated as the pairs'.
+#
 # Statistics as in the DAHA kernel: exact sums of Y^{n+1} (b rows), |Y^{n+1}-Y^n|^2, |Y^n|^2; max
 # step^2 and max real overlap at Y^n.
 
@@ -312,10 +317,13 @@ def nested_coefficients(method, alpha, tau):
 
 @njit(cache=True, inline="always")
 def _nested_step(form, dim, kind, y, x_lin, y_new, n_local, diam, pair_offsets, pair_j,
-                 pair_lambda, xbar, cy, cp, cw, cf, beta, update_lambda, acc, maxima):
+                 pair_lambda, walls, wall_lambda, xbar, pot, cy, cp, cw, cf, beta, update_lambda,
+                 acc, maxima):
     fbuf = exactsum.staging(acc)
+    gravity = pot[potential.POT_KIND] == potential.GRAVITY
     max_step2 = 0.0
     min_ratio2 = 1.0
+    wall_overlap = 0.0
     n_active = 0
     f = np.zeros(dim)
     for i in range(n_local):
@@ -357,12 +365,49 @@ def _nested_step(form, dim, kind, y, x_lin, y_new, n_local, diam, pair_offsets, 
                     g = lam / rp
                     for k in range(dim):
                         f[k] -= g * (x_lin[i, k] - x_lin[j, k])
+        # the container's walls, linearised about X^p as the pairs (2.15): with s^p, n^p the
+        # gap and inward normal at X^p_i, phi^p_iw(Y) = c_i (d_i/2 - s^p - n^p.(Y_i - X^p_i)),
+        # grad_{Y_i} phi^p_iw = -c_i n^p; lambda_iw by the pairs' rule, a contact counts 2
+        if walls.shape[0] > 0:
+            di = diam[i]
+            p0, p1, p2 = coordinates(dim, x_lin, i)
+            y0, y1, y2 = coordinates(dim, y, i)
+            for wall in range(walls.shape[0]):
+                sp, n0, n1, n2, curv = walls_mod.gap(dim, walls, wall, p0, p1, p2)
+                phi, c = walls_mod.wall_constraint(form == SMOOTH, di, sp + n0 * (y0 - p0)
+                                                   + n1 * (y1 - p1) + n2 * (y2 - p2))
+                lam = wall_lambda[i, wall]
+                if update_lambda:
+                    lam = lam + beta * phi
+                    if lam < 0.0:
+                        lam = 0.0
+                    wall_lambda[i, wall] = lam
+                s = walls_mod.gap(dim, walls, wall, y0, y1, y2)[0]  # real overlap at Y^n
+                if s < 0.5 * di and (0.5 * di - s) > wall_overlap * (0.5 * di):
+                    wall_overlap = (0.5 * di - s) / (0.5 * di)
+                if lam > 0.0:
+                    n_active += 2
+                    g = lam * c  # lam grad_i phi^p_iw = -g n^p
+                    f[0] -= g * n0
+                    if dim > 1:
+                        f[1] -= g * n1
+                    if dim > 2:
+                        f[2] -= g * n2
+        weight = 0.0
+        if gravity:  # grad W = m_i g along the last axis, and sphere i's share of W / g at Y^n
+            weight = potential.mass(dim, pot, diam[i]) * pot[potential.POT_G]
+            y0, y1, y2 = coordinates(dim, y, i)
+            exactsum.add(fbuf, acc, dim + 2, potential.height_energy(dim, pot, diam[i], y0, y1, y2))
         dx2 = 0.0
         yy2 = 0.0
         for k in range(dim):
             yi = y[i, k]
-            w = x_lin[i, k] if kind == NAV else yi
-            yn = cy * yi + cp * x_lin[i, k] - cw * (w - xbar[k]) - cf * f[k]
+            if gravity:
+                gw = weight if k == dim - 1 else 0.0
+            else:  # w - A: the centre Xbar or the point P (``kernels.potential``)
+                w = x_lin[i, k] if kind == NAV else yi
+                gw = w - xbar[k]
+            yn = cy * yi + cp * x_lin[i, k] - cw * gw - cf * f[k]
             y_new[i, k] = yn
             exactsum.add(fbuf, acc, k, yn)
             dx2 += (yn - yi) * (yn - yi)
@@ -373,42 +418,82 @@ def _nested_step(form, dim, kind, y, x_lin, y_new, n_local, diam, pair_offsets, 
             max_step2 = dx2
     exactsum.flush(fbuf, acc)
     maxima[MAX_STEP2] = max_step2
-    maxima[MAX_OVERLAP] = 1.0 - np.sqrt(min_ratio2)
+    max_overlap = 1.0 - np.sqrt(min_ratio2)
+    if wall_overlap > max_overlap:  # (a NaN max_overlap stays NaN: the guard must see it)
+        max_overlap = wall_overlap
+    maxima[MAX_OVERLAP] = max_overlap
     return n_active
 
 
+# The scene's kernels: the container's walls and the potential as the DAHA kernels take them.
 @njit(cache=True)
-def nap_s(y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx):
-    return _nested_step(SMOOTH, y.shape[1], NAP, y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx)
-
-
-@njit(cache=True)
-def nap_ns(y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx):
-    return _nested_step(NONSMOOTH, y.shape[1], NAP, y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx)
+def nap_s(y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx):
+    return _nested_step(SMOOTH, y.shape[1], NAP, y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def nav_s(y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx):
-    return _nested_step(SMOOTH, y.shape[1], NAV, y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx)
+def nap_ns(y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx):
+    return _nested_step(NONSMOOTH, y.shape[1], NAP, y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx)
 
 
 @njit(cache=True)
-def nav_ns(y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx):
-    return _nested_step(NONSMOOTH, y.shape[1], NAV, y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx)
+def nav_s(y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx):
+    return _nested_step(SMOOTH, y.shape[1], NAV, y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx)
+
+
+@njit(cache=True)
+def nav_ns(y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx):
+    return _nested_step(NONSMOOTH, y.shape[1], NAV, y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx)
+
+
+# The paper's setting (no container, the centre potential), without the wall and potential
+# arguments: the same kernel with no wall rows and pot = 0.
+@njit(cache=True)
+def _open_walls(n_local):
+    return np.zeros((0, walls_mod.WALL_WIDTH)), np.zeros((n_local, 0)), np.zeros(4)
+
+
+@njit(cache=True)
+def nap_open_s(y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx):
+    wa, wl, pot = _open_walls(n_local)
+    return _nested_step(SMOOTH, y.shape[1], NAP, y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx)
+
+
+@njit(cache=True)
+def nap_open_ns(y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx):
+    wa, wl, pot = _open_walls(n_local)
+    return _nested_step(NONSMOOTH, y.shape[1], NAP, y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx)
+
+
+@njit(cache=True)
+def nav_open_s(y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx):
+    wa, wl, pot = _open_walls(n_local)
+    return _nested_step(SMOOTH, y.shape[1], NAV, y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx)
+
+
+@njit(cache=True)
+def nav_open_ns(y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx):
+    wa, wl, pot = _open_walls(n_local)
+    return _nested_step(NONSMOOTH, y.shape[1], NAV, y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx)
 
 
 _NESTED = {("nap", "S"): nap_s, ("nap", "NS"): nap_ns, ("nav", "S"): nav_s, ("nav", "NS"): nav_ns}
+_NESTED_OPEN = {("nap", "S"): nap_open_s, ("nap", "NS"): nap_open_ns, ("nav", "S"): nav_open_s,
+                ("nav", "NS"): nav_open_ns}
 
 
-def nested_step(method, form):
+def nested_step(method, form, walls=False):
     """The compiled inner-step kernel of NAP or NAV for a form.
 
     Arguments: (y, x_lin, y_new, n_local, diam, pair_offsets, pair_j, pair_lambda, xbar,
     cy, cp, cw, cf, beta, update_lambda, acc, maxima); shapes as the DAHA kernels, x_lin (n_total, b)
-    the linearisation point X^p (ghost rows too). The nested methods are about the paper's
-    small-N comparisons, so these kernels are written for clarity (runtime dimension loops).
+    the linearisation point X^p (ghost rows too). With ``walls``: the scene's kernel, which
+    also takes the container and the potential as the DAHA kernels do, (..., pair_lambda,
+    walls, wall_lambda, xbar, pot, cy, ...), and under gravity adds W / g at Y^n to row b+2 of
+    acc. The nested methods are about the paper's small-N comparisons, so these kernels are
+    written for clarity (runtime dimension loops).
     """
-    return _NESTED[(method, form)]
+    return (_NESTED if walls else _NESTED_OPEN)[(method, form)]
 
 
 # ---- metrics of a configuration and its multipliers (one pass, on demand) ---------------------

@@ -98,16 +98,12 @@ class Method:
 class PaperScheme(Method):
     """A method of the paper's with fixed coefficients (``self.coeffs``), dual gain ``self.beta``
     and a kernel ``self.kernel`` of the paper's signature (``kernels.daha``): the multiplier
-    update (2.10b) when lambda is not yet the current X's, then the position update."""
-
-    #: the kernel takes the container's walls (``kernels.walls``) and the potential
-    #: (``kernels.potential``); the nested kernels do not (config refuses both for NAP and NAV)
-    takes_walls = True
+    update (2.10b) when lambda is not yet the current X's, then the position update; it takes
+    the container's walls (``kernels.walls``) and the potential (``kernels.potential``)."""
 
     def kernel_pass(self, solver, x_other, xbar, red, n_local=None, all_sums=True):
         st = solver.state
         n_local = st.n_local if n_local is None else n_local
-        walls, pot = ((st.walls, st.wall_lambda), (solver.pot,)) if self.takes_walls else ((), ())
         return self.kernel(st.x, x_other, st.x_new, n_local, st.diam, st.pair_offsets, st.pair_j,
-                           st.pair_lambda, *walls, xbar, *pot, *self.coeffs, self.beta, not st.lambda_fresh,
-                           red.acc("step"), red.maxima("step"))
+                           st.pair_lambda, st.walls, st.wall_lambda, xbar, solver.pot, *self.coeffs,
+                           self.beta, not st.lambda_fresh, red.acc("step"), red.maxima("step"))

@@ -39,8 +39,6 @@ class Nested(PaperScheme):
     """NAP or NAV (``method.name``), with method.l_inner inner steps at most and the inner
     criterion method.eps_inner."""
 
-    takes_walls = False
-
     extra_fields = ("x_lin",)
     counts_inner = True
 
@@ -49,8 +47,11 @@ class Nested(PaperScheme):
         self.name, self.dim, self.n = m.name, scene.dim, scene.n
         self.l_inner, self.eps_inner = int(m.l_inner), m.eps_inner
         self.beta = float(m.beta)
+        self.gravity = scene.potential.kind == "gravity"
+        self.centre = scene.potential.kind == "centre"
         self.coeffs = nested_coefficients(m.name, m.alpha, m.tau)
-        self.kernel = kernels.nested_step(m.name, m.form)
+        # the container's walls and the potential as the DAHA kernels take them
+        self.kernel = kernels.nested_step(m.name, m.form, walls=True)
         # the multipliers of the KKT system (2.4) are NAV's times tau (its solve (2.6))
         self.kkt_lambda_scale = float(m.tau) if m.name == "nav" else 1.0
 
@@ -68,6 +69,8 @@ class Nested(PaperScheme):
         st = s.state
         n = st.n_local
         st.x_lin[:] = st.x  # X^p, ghosts are current
+        if not self.centre:  # W^p of the point potential or gravity, from exact sums of X^p
+            _, w_p = s.centre_of_mass()
         nav = self.name == "nav"
         xbar_p = s.xbar.copy()
         if nav:
@@ -78,6 +81,8 @@ class Nested(PaperScheme):
             # the warm start moves every particle by |X^p - X^{p-1}|: it counts for the rows
             jump2 = neighbors.max_displacement2(st.x, st.x_lin, n)
             s.refresh_ghosts(math.sqrt(s.comm.allreduce(np.array([jump2]), op="max")[0]))
+            if s.point is not None:
+                s.sum_x = None  # sum X^p, not of the warm start: the first pass sums it again
         inner = 0
         fig = {}
         for inner in range(1, self.l_inner + 1):
@@ -103,7 +108,8 @@ class Nested(PaperScheme):
         st.x_prev[:st.n_local] = st.x_lin[:st.n_local]  # X^{p}, for NAV's V^{p+1}
         st.iteration += 1
         fig["relative_change"] = math.sqrt(d2 / p2) if p2 > 0 else (0.0 if d2 == 0 else math.inf)
-        fig["W"] = 0.5 * (p2 - self.n * float(xbar_p @ xbar_p))  # W^p, as DAHA's figures carry W^n
+        # W^p, as DAHA's figures carry W^n
+        fig["W"] = 0.5 * (p2 - self.n * float(xbar_p @ xbar_p)) if self.centre else w_p
         fig["iteration"] = st.iteration
         fig["inner_iterations"] = inner
         return fig
