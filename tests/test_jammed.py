@@ -103,6 +103,47 @@ def test_a_restart_across_the_check_stops_on_the_same_iteration(tmp_path, cut):
     assert_bitwise_equal(straight.particles, again.particles, f"jammed stop, restart from {cut}")
 
 
+# 3D: the jammed run quenches (``fire_al_schedule.QUENCH``): jammed at 950 iterations, certified
+# at 5100
+QUENCH_3D = ["dim=3", "n=300"]
+
+
+def test_a_3d_jammed_run_quenches_long_before_the_certificate(tmp_path):
+    cert = run_rule(None, QUENCH_3D, "certified")
+    jam = run_rule(None, QUENCH_3D, "jammed", gather=True)
+    assert cert.converged and jam.stop_reason == "jammed" and jam.exit_code == 0
+    assert jam.iterations * 3 < cert.iterations, (jam.iterations, cert.iterations)
+    assert_jammed_summary(jam.summary)
+    w, overlap = brute_force_figures(jam.particles)
+    assert overlap <= jam.summary["resolved_scene"]["stop"]["overlap"]
+    assert jam.summary["W"] == pytest.approx(w, rel=1e-10)
+    # a jammed packing, not the certified optimum: its W within a few per cent above
+    assert cert.summary["W"] < jam.summary["W"] < 1.05 * cert.summary["W"]
+
+
+@pytest.mark.parametrize("cut", [150, 550])
+def test_a_3d_restart_across_the_quench_stops_on_the_same_iteration(tmp_path, cut):
+    """Cut between the quench's window marks (150) and in its stiff phase (550): the mark and
+    the schedule come from the checkpoint, the stop and the bits are the straight run's; and
+    the same on 2 and 3 ranks."""
+    straight = run_rule(None, QUENCH_3D, "jammed", gather=True)
+    assert straight.stop_reason == "jammed" and cut < straight.iterations
+    out = str(tmp_path / "out")
+    first = run_rule(None, QUENCH_3D + [f"stop.max_iter={cut}"], "jammed", out=out)
+    assert first.exit_code == 4 and first.iterations == cut
+    again = mpipack.run(restart=out, overrides=["stop.max_iter=100000"], gather=True)
+    assert again.exit_code == 0 and again.stop_reason == "jammed", again.error
+    assert again.iterations == straight.iterations
+    assert_bitwise_equal(straight.particles, again.particles, f"3D jammed stop, restart from {cut}")
+    if cut == 550:
+        for ranks in (2, 3):
+            proc, s, d = mpipack_run(ranks, _mk(tmp_path / f"np{ranks}"), sets=QUENCH_3D + ["stop.rule=jammed"],
+                                     dump=True)
+            assert proc.returncode == 0, describe(proc)
+            assert s["iterations"] == straight.iterations
+            assert_bitwise_equal(straight.particles, d, f"3D jammed stop, {ranks} ranks against 1")
+
+
 @pytest.mark.parametrize("value", ["0", "-1e-3", "1", "2.0", "nan", "inf", '"tight"', "true"])
 def test_bad_jammed_rtol_is_refused_in_one_line(value):
     with pytest.raises(config.SceneError) as e:

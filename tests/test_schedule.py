@@ -146,3 +146,64 @@ def test_the_lbfgs_phase_damps_its_multiplier_steps(dim):
     assert step is not None and step - it <= schedule.QN_MAX_INNER
     a1, a2, a3, a4, beta = sch.coefficients()[:5]
     assert (a3, a4, beta) == (0.0, 0.0, damp * sch.s.cb)
+
+
+def jammed_schedule(dim):
+    """A schedule of stop.rule = "jammed" (``FireALSchedule(..., jammed=True)``), in phase fire."""
+    sch = schedule.FireALSchedule(2000, dim, 1.0, "S", overlap_tol=1e-3, jammed=True)
+    sch.observe(figure(sch, iteration=1, max_overlap=0.01))
+    sch.take_pending()
+    return sch
+
+
+def test_a_jammed_3d_run_quenches_once_w_has_settled():
+    """3D jammed: the first multiplier step as soon as W is the same at two window marks (not
+    after the soft phase's FIRST_INNER beyond the fall), then one every QUENCH_MAX_INNER, and
+    c_b grows at each though the overlap halves (the certified schedule would hold it)."""
+    sch = jammed_schedule(3)
+    assert sch.quench
+    step = run_until_step(sch, 2, 0.01, schedule.FIRST_INNER)
+    assert step == 1 + 2 * schedule.QUENCH_WINDOW, step  # the first mark at 101, equal at 201
+    cbs = [sch.s.cb]
+    for overlap in (2.5e-3, 1.2e-3, 5.5e-4):  # each under half the last, above the hold (5e-4)
+        nxt = run_until_step(sch, step + 1, overlap, schedule.QUENCH_MAX_INNER + 10)
+        assert nxt is not None and nxt - step == schedule.QUENCH_MAX_INNER, (step, nxt)
+        step = nxt
+        cbs.append(sch.s.cb)
+    assert cbs == [schedule.C_B[3] * schedule.CB_GROW[3], schedule.CB_MAX, schedule.CB_MAX, schedule.CB_MAX]
+    assert sch.s.qn  # the stiff phase's L-BFGS, its steps forced after QUENCH_MAX_INNER too
+
+
+def test_a_jammed_3d_run_whose_w_still_falls_waits_for_the_soft_phase():
+    """W falling by 1% per window never settles: the first step comes where the certified
+    schedule's does."""
+    sch = jammed_schedule(3)
+    wait = schedule.FIRST_INNER + sch.fall_iterations
+    for it in range(2, wait + 10):
+        sch.coefficients()
+        fig = figure(sch, it, 0.01)
+        fig["W"] = sch.w_eq * (1.0 - 1e-4 * it)
+        sch.observe(fig)
+        if sch.s.dual_now:
+            break
+    assert it - 1 == wait, (it, wait)
+
+
+def test_a_jammed_2d_run_does_not_quench():
+    """2D jams as soon without (docs/benchmarks.md): the certified schedule's first step."""
+    sch = jammed_schedule(2)
+    assert not sch.quench
+    wait = schedule.FIRST_INNER + sch.fall_iterations
+    step = run_until_step(sch, 2, 0.01, wait + 10)
+    assert step - 1 == wait, (step, wait)
+
+
+def test_the_quench_mark_is_in_the_checkpoint():
+    """A restart between two window marks compares W with the saved mark (bitwise restarts)."""
+    sch = jammed_schedule(3)
+    assert run_until_step(sch, 2, 0.01, 150) is None  # past the first mark (101)
+    saved = sch.save()
+    assert saved["w_mark"] == sch.w_eq
+    again = schedule.FireALSchedule(2000, 3, 1.0, "S", overlap_tol=1e-3, jammed=True)
+    again.restore(saved)
+    assert run_until_step(again, 152, 0.01, 100) == 1 + 2 * schedule.QUENCH_WINDOW

@@ -37,7 +37,7 @@ class FireAL(Method):
         self.gravity = scene.potential.kind == "gravity"
         self.schedule = FireALSchedule(scene.n, scene.dim, scene.particles.d_mean,
                                        scene.method.form, overlap_tol=scene.stop.overlap,
-                                       law=scene_law(scene))
+                                       law=scene_law(scene), jammed=scene.stop.rule == "jammed")
         self.kernel = kernels_fire.fire_al_step(scene.method.form, scene.dim)
         self.coeffs = FireALSchedule.NO_STEP
         self._lbfgs_reduction = None

@@ -150,6 +150,17 @@ QN_MAX_INNER = 500
 # In 3D it did not clearly pay (N = 2000 seeds 0 - 9 7% fewer, N = 8000 seeds 0 - 4 1% more).
 # A fixed point is unchanged: at a KKT point phi lambda = 0, phi <= 0, and lambda stays
 QN_DUAL_STEP = {1: 1.0, 2: 0.5, 3: 1.0}
+# the quench of a jammed finish (``stop.rule = "jammed"``, 3D): the first multiplier step as soon
+# as W has settled, |W^n - W^(n - QUENCH_WINDOW)| <= QUENCH_SETTLED W^n, checked every
+# QUENCH_WINDOW iterations of the fire phase (instead of FIRST_INNER beyond the fall, which packs
+# denser for the certificate), then a multiplier step forced after QUENCH_MAX_INNER iterations
+# and c_b grown at every one (the overlap down to stop.overlap at once, as a two-stage quench
+# raises its stiffness): 3D N = 1e4 seeds 1 - 4 jam after 2250 - 2850 iterations against
+# 8250 - 9250, W 0.75% higher. In 2D the schedule already jams in 2300 - 2900 (N = 2000), and a
+# quench did not pay (N = 2000 and 2e4, seeds 1 - 3: about the same iterations, W higher;
+# docs/benchmarks.md, "Jammed finish")
+QUENCH = {1: False, 2: False, 3: True}
+QUENCH_WINDOW, QUENCH_SETTLED, QUENCH_MAX_INNER = 100, 1e-3, 300
 # FIRE's dt_max = DT_LEAPFROG / sqrt(k_rel): the leapfrog's stability bound dt^2 lambda_max < 4
 # with lambda_max bounded by the Gershgorin row k_rel
 DT_LEAPFROG = 2.0
@@ -250,6 +261,7 @@ class ScheduleState:
     ov_dual: float = math.inf      # the max overlap at the last multiplier step
     qn: bool = False               # the inner solves are L-BFGS's, from iteration qn_from
     qn_from: int = 0
+    w_mark: float = math.inf       # the quench: W at the last window's start (inf: none yet)
 
 
 class FireALSchedule:
@@ -260,8 +272,10 @@ class FireALSchedule:
     # coefficients of a pass that moves nothing (compiling the kernel at set-up)
     NO_STEP = Coefficients(1.0, 0.0, 0.0, 0.0, 0.0, 0.0, False, False, 0.0)
 
-    def __init__(self, n, dim, d, form, *, overlap_tol, law=None):
+    def __init__(self, n, dim, d, form, *, overlap_tol, law=None, jammed=False):
         law = law or packing_law(n, dim, d, form)
+        # a jammed finish quenches (see QUENCH) where that pays
+        self.quench = jammed and QUENCH[dim]
         # step 0, the spread into a ball about Xbar; in a container (law "spread" False), a
         # uniform fill of the container instead (a ball would cross its walls)
         self.spread = law.get("spread", True)
@@ -339,12 +353,14 @@ class FireALSchedule:
         wait = MAX_INNER if s.dual_steps >= 1 else FIRST_INNER + self.fall_iterations
         if s.qn and fig["max_overlap"] > self.overlap_tol:
             wait = QN_MAX_INNER
+        if self.quench:
+            wait = min(wait, QUENCH_MAX_INNER if s.dual_steps >= 1 else self._quench_wait(fig))
         stalled = (MAX_INNER > 0 and s.since_dual >= wait
                    and fig["max_overlap"] > self.hold_overlap)
         if not was_dual and s.since_dual >= MIN_INNER and (s.inner_residual <= s.eta or stalled):
             s.dual_now = True
             s.dual_steps += 1
-            if fig["max_overlap"] > PEN_GROW * s.ov_dual:
+            if fig["max_overlap"] > PEN_GROW * s.ov_dual or self.quench:
                 s.cb = min(self.cb_grow * s.cb, CB_MAX)
             s.ov_dual = fig["max_overlap"]
             s.since_dual = 0
@@ -358,6 +374,18 @@ class FireALSchedule:
                 s.qn_from = fig["iteration"] + 1
                 k_rel = max(fig["max_row"] / s.b, 1.0)
                 self.lbfgs = qn.LBFGS(qn.MEMORY[self.dim], h0=1.0 / k_rel)
+
+    def _quench_wait(self, fig):
+        """The quench's wait for the first multiplier step: 0 (now) when W has settled over the
+        last QUENCH_WINDOW iterations of the fire phase, else no forced step before the usual
+        FIRST_INNER beyond the fall. W is compared every QUENCH_WINDOW iterations."""
+        s = self.s
+        if (fig["iteration"] - s.switch_iteration) % QUENCH_WINDOW != 0:
+            return math.inf
+        mark, s.w_mark = s.w_mark, fig["W"]
+        if abs(fig["W"] - mark) <= QUENCH_SETTLED * abs(fig["W"]):  # False while mark is inf
+            return 0
+        return math.inf
 
     def _fire_observe(self, fig, grad_w, was_dual):
         """FIRE's part of ``observe``: the inner residual, restarts, dt and the mixing."""
