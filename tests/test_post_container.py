@@ -438,3 +438,20 @@ def test_a_pebble_bed_has_its_first_peak_half_a_diameter_from_the_wall(tmp_path)
     rows = list(csv.DictReader(open(tmp_path / "post" / "density-wall.csv")))
     phi = np.array([float(r["phi"]) for r in rows])
     assert phi[0] < 0.25 and phi[7:13].min() < w["first_peak_phi"] - 0.15
+
+
+def test_the_centres_first_layer_is_the_touching_one_when_it_splits_on_a_bin_edge():
+    """Spheres touching a wall sit at t = d/2, a bin edge: a layer split 1321 / 1371 between the
+    bins at 0.45 and 0.55 d is the first layer, not a second layer of 1987 in one bin at 1.35 d
+    (a packed bed's counts), and a layer in one bin is at that bin's middle."""
+    from mpipack.post.analysis import centres_first_layer
+    mid = (np.arange(50) + 0.5) / 10
+    first = mid <= 1.5
+    counts = np.zeros(50)
+    counts[[4, 5, 12, 13]] = [1321, 1371, 218, 1987]
+    t = centres_first_layer(mid, counts, first)
+    assert t == pytest.approx((0.45 * 1321 + 0.55 * 1371) / 2692) and abs(t - 0.5) < 0.01
+    one = np.zeros(50)
+    one[[5, 15]] = [100, 100]
+    assert centres_first_layer(mid, one, first) == pytest.approx(0.55)
+    assert centres_first_layer(mid, np.zeros(50), first) == 0.0

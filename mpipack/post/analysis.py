@@ -19,6 +19,21 @@ PICTURE_MAX = 200_000     # spheres drawn in one picture at most (a window about
 FIRST_PEAK_WINDOW = 1.5   # g(r)'s first peak: its maximum over r <= 1.5 mean diameters
 
 
+def centres_first_layer(mid, centres, first):
+    """Where the centres' first layer lies, in units of d: the heaviest pair of adjacent bins
+    among those whose middle ``mid`` (sorted, (k,)) is flagged ``first`` (the first 1.5 d), at
+    its count-weighted mean. A pair, not one bin: the spheres touching a wall sit at t = d/2,
+    a bin edge, and split about evenly between two bins, either of which a second layer that
+    falls in one bin may outweigh. centres (k,) counts; 0.0 if there are none."""
+    c = np.asarray(centres, dtype=np.float64)
+    pair = c[:-1] + c[1:]
+    ok = first[:-1] & (pair > 0)
+    if not ok.any():
+        return 0.0
+    q = int(np.argmax(np.where(ok, pair, -1.0)))
+    return float((mid[q] * c[q] + mid[q + 1] * c[q + 1]) / pair[q])
+
+
 @dataclasses.dataclass
 class Measure:
     name: str
@@ -196,9 +211,9 @@ class Analysis:
             with np.errstate(divide="ignore", invalid="ignore"):
                 prof = np.where(shell > 0, covered / np.where(shell > 0, shell, 1.0), np.nan)
             q = int(np.nanargmax(np.where(first & np.isfinite(prof), prof, -np.inf)))
-            qc = int(np.argmax(np.where(first, centres, -1)))
             return prof, {"first_peak_t_over_d": float(mid[q]), "first_peak_phi": float(prof[q]),
-                          "centres_first_peak_t_over_d": float(mid[qc]), "centres_within_range": int(centres.sum())}
+                          "centres_first_peak_t_over_d": centres_first_layer(mid, centres, first),
+                          "centres_within_range": int(centres.sum())}
 
         # the headline: from the nearest wall (C_t the container shrunk by t, clipped at the bed's top)
         covered, shell, centres = box.nearest_wall_profile(self.comm, c, dim, x, diam, edges, clip)
