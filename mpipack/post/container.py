@@ -67,6 +67,21 @@ def of_scene(scene, dim):
     return c
 
 
+def binned_sum(comm, cols, vals, nbins):
+    """sum over all ranks of vals by bin: (nbins,) float64, each bin's sum exact (``exactsum``:
+    the same bits on any number of ranks, whatever the order of the terms). cols (m,) the
+    terms' bins in [0, nbins), vals (m,) the terms (lists or arrays). Collective."""
+    cols, vals = np.asarray(cols, np.int64), np.asarray(vals, np.float64)
+    order = np.argsort(cols, kind="stable")
+    cols, vals = cols[order], vals[order]
+    cuts = np.searchsorted(cols, np.arange(nbins + 1))
+    acc = exactsum.new_accumulator(nbins)
+    for q in range(nbins):
+        exactsum.accumulate(np.ascontiguousarray(vals[cuts[q]:cuts[q + 1]]), acc, q)
+    acc = comm.allreduce(acc)
+    return np.array([exactsum.value(acc, q) for q in range(nbins)])
+
+
 def gaps(walls, x):
     """s (m, n_walls): each centre's signed distance inside each wall (element by element, the
     same bits for a sphere on any rank)."""
@@ -252,15 +267,7 @@ def axis_profile(comm, c, dim, x, diam, vol, side, edges):
         for q, p in parts:
             rows.append(q)
             vals.append(p * keep)
-    rows, vals = np.asarray(rows, np.int64), np.asarray(vals, np.float64)
-    acc = exactsum.new_accumulator(len(edges) - 1)
-    order = np.argsort(rows, kind="stable")
-    rows, vals = rows[order], vals[order]
-    cuts = np.searchsorted(rows, np.arange(len(edges)))
-    for q in range(len(edges) - 1):
-        exactsum.accumulate(np.ascontiguousarray(vals[cuts[q]:cuts[q + 1]]), acc, q)
-    acc = comm.allreduce(acc)
-    return np.array([exactsum.value(acc, q) for q in range(len(edges) - 1)])
+    return binned_sum(comm, rows, vals, len(edges) - 1)
 
 
 def part_inside(c, w, dim, r, s_iw, t):
@@ -303,7 +310,7 @@ def wall_profile(comm, c, dim, x, diam, edges, top=None):
     r = 0.5 * diam
     s = gaps(c.walls, x) if len(diam) else np.zeros((0, c.walls.shape[0]))
     centres = np.zeros(nbins, np.int64)
-    rows, cols, vals = [], [], []
+    cols, vals = [], []
     for w in range(c.walls.shape[0]):
         kc = np.floor(s[:, w] / width).astype(np.int64)
         ok = (s[:, w] >= 0) & (kc < nbins)
@@ -314,18 +321,9 @@ def wall_profile(comm, c, dim, x, diam, edges, top=None):
             q1 = min(int(np.searchsorted(edges, si + ri, side="left")), nbins)
             g = [part_inside(c, w, dim, ri, si, float(edges[q])) for q in range(q0, q1 + 1)]
             for q in range(q0, q1):
-                rows.append(i)
                 cols.append(q)
                 vals.append(max(g[q - q0] - g[q - q0 + 1], 0.0))
-    cols, vals = np.asarray(cols, np.int64), np.asarray(vals, np.float64)
-    order = np.argsort(cols, kind="stable")
-    cols, vals = cols[order], vals[order]
-    cuts = np.searchsorted(cols, np.arange(nbins + 1))
-    acc = exactsum.new_accumulator(nbins)
-    for q in range(nbins):
-        exactsum.accumulate(np.ascontiguousarray(vals[cuts[q]:cuts[q + 1]]), acc, q)
-    acc = comm.allreduce(acc)
-    covered = np.array([exactsum.value(acc, q) for q in range(nbins)])
+    covered = binned_sum(comm, cols, vals, nbins)
     shell = np.array([sum(wall_inner_measure(c, dim, w, float(edges[q]), top)
                           - wall_inner_measure(c, dim, w, float(edges[q + 1]), top) for w in range(c.walls.shape[0]))
                       for q in range(nbins)])
@@ -517,15 +515,7 @@ def nearest_wall_profile(comm, c, dim, x, diam, edges, clip=None):
         for q in range(q0, q1):
             cols.append(q)
             vals.append(max(g[q - q0] - g[q - q0 + 1], 0.0))
-    cols, vals = np.asarray(cols, np.int64), np.asarray(vals, np.float64)
-    order = np.argsort(cols, kind="stable")
-    cols, vals = cols[order], vals[order]
-    cuts = np.searchsorted(cols, np.arange(nbins + 1))
-    acc = exactsum.new_accumulator(nbins)
-    for q in range(nbins):
-        exactsum.accumulate(np.ascontiguousarray(vals[cuts[q]:cuts[q + 1]]), acc, q)
-    acc = comm.allreduce(acc)
-    covered = np.array([exactsum.value(acc, q) for q in range(nbins)])
+    covered = binned_sum(comm, cols, vals, nbins)
     shell = np.array([shrunk_measure(c, dim, float(edges[q]), clip) - shrunk_measure(c, dim, float(edges[q + 1]), clip)
                       for q in range(nbins)])
     return covered, shell, halo.total(comm, centres)
