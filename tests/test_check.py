@@ -239,3 +239,18 @@ def test_check_under_mpirun_prints_once(tmp_path):
     assert proc.returncode == 0, describe(proc)
     assert proc.stdout.count("## Resolved scene") == 1
     assert "on 2 rank(s)" in proc.stdout or "2 rank(s)" in proc.stdout
+
+
+@pytest.mark.parametrize("potential,nap_line", [('kind = "point"\npoint = [-1.0, -1.0]', False),
+                                                ('kind = "gravity"\ng = 1.0', True)])
+def test_check_of_a_nested_method_in_a_container_says_its_estimate_is_a_guide(tmp_path, potential, nap_line):
+    """NAP in a box: the cluster's linearisation is the trap's, without walls; under gravity NAP
+    circles a floor's fixed point (tests/test_container_nested.py), which check says."""
+    scene = tmp_path / "nap-box.toml"
+    scene.write_text('name = "nap-box"\ndim = 2\nn = 30\nseed = 1\n[method]\nname = "nap"\nform = "NS"\n'
+                     'alpha = 0.1\nbeta = 0.16\nl_inner = 1000\n[container]\nkind = "box"\nlo = [-3.0, -3.0]\n'
+                     f'hi = [3.0, 3.0]\n[potential]\n{potential}\n')
+    proc = cli(["check", scene], tmp_path)
+    assert proc.returncode == 0, describe(proc)
+    assert "they are a guide only" in proc.stdout and "container.kind = 'box'" in proc.stdout, proc.stdout
+    assert ("NAP has no damping" in proc.stdout) == nap_line

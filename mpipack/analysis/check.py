@@ -147,11 +147,14 @@ def report_lines(scene, ranks):
                      f"with no c < 2 tried (research). Not part of the verdict")
         L.append("  the packed-state figures are estimates calibrated on packings made by mpipack run (see "
                  "`mpipack.analysis.check`); two free spheres bound nothing for N > 2")
-        if scene.container.active or scene.potential.kind != "centre":
-            L.append(f"  these estimates are those of the paper's W (the trap); with potential.kind = "
-                     f"{scene.potential.kind!r} and container.kind = {scene.container.kind!r} they are a guide "
-                     f"only: a wall's row adds at most a pair's, and gravity's W has no curvature (its term in "
-                     f"the bound is alpha^2 x 0); the fire-al schedule needs no such estimate")
+    if (scene.container.active or scene.potential.kind != "centre") and (rep["packed"] or rep["cluster"]):
+        L.append(f"  these estimates are those of the paper's W (the trap) without walls; with potential.kind = "
+                 f"{scene.potential.kind!r} and container.kind = {scene.container.kind!r} they are a guide "
+                 f"only: a wall's row adds at most a pair's, and gravity's W has no curvature (its term in "
+                 f"the bound is alpha^2 x 0); the fire-al schedule needs no such estimate")
+        if m.name == "nap" and scene.potential.kind == "gravity":
+            L.append("  NAP has no damping: where W is flat along a direction the walls hold (a sphere on a "
+                     "floor under gravity) it circles the fixed point instead of settling; NAV settles there")
     margin = _margin_lines(scene, stable)
     basis = ("two free spheres, the scheme as it runs" if scene.n == 2 else
              "the scheme linearised at the close-packed cluster" if rep["packed"] is None and scene.n > 2 else
