@@ -10,7 +10,7 @@ import zlib
 import numpy as np
 import pytest
 
-from conftest import assert_bitwise_equal, describe, mpipack_run
+from conftest import assert_bitwise_equal, describe, mpipack_run, step_each
 from mpipack import config
 from mpipack.engine import solver
 from mpipack.kernels import daha as kernels
@@ -177,13 +177,15 @@ def test_nap_one_sphere_on_a_floor_orbits_its_fixed_point(form):
                                             "potential.kind=gravity", "potential.g=2.0"])
     s = solver.Solver(scene, Comm())
     s.initialise()
-    s.method.prepare(s)
     floor = walls.wall_names(scene.container, 2).index("-y")
     h, lam = [], []
-    for _ in range(3000):
-        s.step()
+
+    def record(fig):
         h.append(s.state.x[0, 1])
         lam.append(s.state.wall_lambda[0, floor])
+
+    step_each(s, 3000, record)  # through the one loop (engine.loop.run), as any user of it
+    assert len(h) == 3000
     h, lam = np.array(h[1000:]), np.array(lam[1000:])
     assert h.mean() == pytest.approx(0.5, abs=0.01) and lam.mean() == pytest.approx(2.0, abs=0.01)
     assert lam.min() < 1e-3 and lam.max() > 3.99 and h.max() - h.min() > 3.9

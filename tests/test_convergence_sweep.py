@@ -29,7 +29,7 @@ def test_loop_seconds_leave_room_under_the_timeout():
     for timeout in (6, 20, 600, 3600, 20000):
         limit = convergence_sweep.loop_seconds(timeout)
         assert 1.0 <= limit < timeout
-    assert convergence_sweep.loop_seconds(20) == 15
+    assert convergence_sweep.loop_seconds(20) == 10
     assert convergence_sweep.loop_seconds(3600) == 3480
 
 
