@@ -99,7 +99,7 @@ def test_inner_kernel_walls_match_reference(form, method, pot, update):
         pvec = np.zeros(4)
         grad_w = (xp if method == "nav" else y) - point
     y_ref, lam_ref = reference_walls(form, method, y, xp, diam, wall_rows, lam0, grad_w, p, update)
-    kern = kernels.nested_step(method, form, walls=True)
+    kern = kernels.nested_step(method, form)
     cy, cp, cw, cf = nested.nested_coefficients(method, p["alpha"], p["tau"])
     acc = exactsum.new_accumulator(b + 3)
     maxima = np.zeros(kernels.N_MAX)

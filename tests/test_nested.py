@@ -28,6 +28,7 @@ import numpy as np
 import pytest
 
 from conftest import assert_bitwise_equal, describe, mpipack_run, step_each
+from support import CENTRE, no_walls
 from mpipack import config
 from mpipack.parallel import exactsum, neighbors
 from mpipack.kernels import daha as kernels
@@ -198,8 +199,8 @@ def run_nested_kernel(method, form, y, xp, diam, offsets, pair_j, pair_lambda, x
     y_new = np.full_like(y, np.nan)
     acc = exactsum.new_accumulator(b + 2)
     maxima = np.zeros(kernels.N_MAX)
-    n_active = kern(y, xp, y_new, n_local, diam, offsets, pair_j, pair_lambda, xbar, cy, cp, cw,
-                    cf, p["beta"], update, acc, maxima)
+    n_active = kern(y, xp, y_new, n_local, diam, offsets, pair_j, pair_lambda, *no_walls(n_local), xbar,
+                    CENTRE, cy, cp, cw, cf, p["beta"], update, acc, maxima)
     return y_new, acc, maxima, n_active
 
 

@@ -446,54 +446,20 @@ def nav_ns(y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp
     return _nested_step(NONSMOOTH, y.shape[1], NAV, y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx)
 
 
-# The paper's setting (no container, the centre potential), without the wall and potential
-# arguments: the same kernel with no wall rows and pot = 0.
-@njit(cache=True)
-def _open_walls(n_local):
-    return np.zeros((0, walls_mod.WALL_WIDTH)), np.zeros((n_local, 0)), np.zeros(4)
-
-
-@njit(cache=True)
-def nap_open_s(y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx):
-    wa, wl, pot = _open_walls(n_local)
-    return _nested_step(SMOOTH, y.shape[1], NAP, y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx)
-
-
-@njit(cache=True)
-def nap_open_ns(y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx):
-    wa, wl, pot = _open_walls(n_local)
-    return _nested_step(NONSMOOTH, y.shape[1], NAP, y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx)
-
-
-@njit(cache=True)
-def nav_open_s(y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx):
-    wa, wl, pot = _open_walls(n_local)
-    return _nested_step(SMOOTH, y.shape[1], NAV, y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx)
-
-
-@njit(cache=True)
-def nav_open_ns(y, x_lin, y_new, n_local, diam, po, pj, pl, xbar, cy, cp, cw, cf, beta, upd, acc, mx):
-    wa, wl, pot = _open_walls(n_local)
-    return _nested_step(NONSMOOTH, y.shape[1], NAV, y, x_lin, y_new, n_local, diam, po, pj, pl, wa, wl, xbar, pot, cy, cp, cw, cf, beta, upd, acc, mx)
-
-
 _NESTED = {("nap", "S"): nap_s, ("nap", "NS"): nap_ns, ("nav", "S"): nav_s, ("nav", "NS"): nav_ns}
-_NESTED_OPEN = {("nap", "S"): nap_open_s, ("nap", "NS"): nap_open_ns, ("nav", "S"): nav_open_s,
-                ("nav", "NS"): nav_open_ns}
 
 
-def nested_step(method, form, walls=False):
+def nested_step(method, form):
     """The compiled inner-step kernel of NAP or NAV for a form.
 
-    Arguments: (y, x_lin, y_new, n_local, diam, pair_offsets, pair_j, pair_lambda, xbar,
-    cy, cp, cw, cf, beta, update_lambda, acc, maxima); shapes as the DAHA kernels, x_lin (n_total, b)
-    the linearisation point X^p (ghost rows too). With ``walls``: the scene's kernel, which
-    also takes the container and the potential as the DAHA kernels do, (..., pair_lambda,
-    walls, wall_lambda, xbar, pot, cy, ...), and under gravity adds W / g at Y^n to row b+2 of
-    acc. The nested methods are about the paper's small-N comparisons, so these kernels are
-    written for clarity (runtime dimension loops).
+    Arguments: (y, x_lin, y_new, n_local, diam, pair_offsets, pair_j, pair_lambda, walls,
+    wall_lambda, xbar, pot, cy, cp, cw, cf, beta, update_lambda, acc, maxima); shapes as the DAHA
+    kernels (the container and the potential as they take them: no wall rows and pot = 0 for the
+    paper's setting), x_lin (n_total, b) the linearisation point X^p (ghost rows too). Under
+    gravity it adds W / g at Y^n to row b+2 of acc. The nested methods are about the paper's
+    small-N comparisons, so these kernels are written for clarity (runtime dimension loops).
     """
-    return (_NESTED if walls else _NESTED_OPEN)[(method, form)]
+    return _NESTED[(method, form)]
 
 
 # ---- metrics of a configuration and its multipliers (one pass, on demand) ---------------------

@@ -51,7 +51,7 @@ class Nested(PaperScheme):
         self.centre = scene.potential.kind == "centre"
         self.coeffs = nested_coefficients(m.name, m.alpha, m.tau)
         # the container's walls and the potential as the DAHA kernels take them
-        self.kernel = kernels.nested_step(m.name, m.form, walls=True)
+        self.kernel = kernels.nested_step(m.name, m.form)
         # the multipliers of the KKT system (2.4) are NAV's times tau (its solve (2.6))
         self.kkt_lambda_scale = float(m.tau) if m.name == "nav" else 1.0
 
