@@ -10,8 +10,9 @@ valid until some particle has moved more than skin/2 since the build: two partic
 further apart than d_ij + skin cannot overlap before that.
 
 Cells: size h = max diameter + skin. Cell coordinates become one int64 key per particle; the
-particles are sorted by key and a cell's members are found by binary search, so memory is
-O(particles) however sparse or spread out the cloud is.
+particles are sorted by key (a counting sort over a grid of at most 16 cells a particle, else a
+merge sort) and a cell's members are found by the grid's index or by binary search, so memory
+is O(particles) however sparse or spread out the cloud is.
 """
 
 import numpy as np
@@ -77,10 +78,12 @@ def cell_keys(x, n, h):
 @njit(cache=True)
 def dense_cells(dims, n):
     """The number of cells of the grid ``dims`` when it is small enough to index directly (at
-    most 4 n + 64 cells for n particles), else 0 (a sparse cloud: cells found by search)."""
+    most 16 n + 64 cells for n particles: a spread start has up to ~10 cells a particle, and an
+    index of int32 costs 4 bytes a cell), else 0 (a sparse cloud: cells found by search)."""
+    limit = 16 * n + 64
     n_cells = np.int64(1)
     for k in range(dims.shape[0]):
-        if dims[k] > 4 * n + 64 or n_cells * dims[k] > 4 * n + 64:
+        if dims[k] > limit or n_cells * dims[k] > limit:
             return np.int64(0)
         n_cells *= dims[k]
     return n_cells
@@ -90,39 +93,38 @@ def dense_cells(dims, n):
 def _cell_index(keys, n_cells_dense):
     """Particles sorted by cell key, and a way to find each cell's members.
 
-    Returns (order, skeys, cell_start): order sorts keys; if n_cells_dense > 0, cell_start
-    (n_cells_dense+1,) gives cell c's members as order[cell_start[c]:cell_start[c+1]] (a
-    counting sort, O(n)); otherwise cell_start is empty and members are found by binary
-    search in skeys (for sparse clouds, where a dense grid would not fit in memory).
+    Returns (order, skeys, cell_start): order sorts keys (stably), skeys = keys[order]; if
+    n_cells_dense > 0, cell_start int32 (n_cells_dense+1,) gives cell c's members as
+    order[cell_start[c]:cell_start[c+1]] (a counting sort, O(n)); otherwise cell_start is
+    empty and a cell's members are found by binary search in skeys (for sparse clouds, where a
+    dense grid would not fit in memory).
     """
     n = keys.shape[0]
     if n_cells_dense > 0:
-        cell_start = np.zeros(n_cells_dense + 1, dtype=np.int64)
+        cell_start = np.zeros(n_cells_dense + 1, dtype=np.int32)
         for i in range(n):
             cell_start[keys[i] + 1] += 1
         for c in range(n_cells_dense):
             cell_start[c + 1] += cell_start[c]
-        fill = cell_start[:-1].copy()
+        # place each particle at its cell's next free slot (cell_start[c] walks to the end of
+        # cell c, which is the start of c + 1), then shift the starts back by one cell
         order = np.empty(n, dtype=np.int64)
         for i in range(n):
             c = keys[i]
-            order[fill[c]] = i
-            fill[c] += 1
-        return order, keys[:0].copy(), cell_start
-    order = np.argsort(keys)
-    return order, keys[order], np.zeros(0, dtype=np.int64)
+            order[cell_start[c]] = i
+            cell_start[c] += 1
+        for c in range(n_cells_dense, 0, -1):
+            cell_start[c] = cell_start[c - 1]
+        cell_start[0] = 0
+        return order, keys[order], cell_start
+    order = np.argsort(keys, kind="mergesort")
+    return order, keys[order], np.zeros(0, dtype=np.int32)
 
 
 @njit(cache=True)
-def _max_occupancy(skeys, cell_start):
-    """The most particles in one cell (dense: from cell_start; sparse: the longest run of equal
-    sorted keys)."""
+def _max_occupancy(skeys):
+    """The most particles in one cell: the longest run of equal sorted keys."""
     most = 0
-    if cell_start.shape[0] > 0:
-        for c in range(cell_start.shape[0] - 1):
-            if cell_start[c + 1] - cell_start[c] > most:
-                most = cell_start[c + 1] - cell_start[c]
-        return most
     run = 0
     for q in range(skeys.shape[0]):
         run = run + 1 if q > 0 and skeys[q] == skeys[q - 1] else 1
@@ -146,14 +148,14 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
     hold more than max_entries entries the build stops early and missing is -1: a start so
     dense that the rows would not fit in memory is reported, not attempted.
 
+    The particles' positions, diameters and gids are copied in cell order (row-major cell
+    keys), so the 3 cells along the last axis of each of the 3^(b-1) neighbour cell rows are
+    one contiguous run of that copy: a sphere's candidates are 3^(b-1) runs, read in place.
     Each row is assembled in buffers sized once for the longest possible row (3^b cells of
     the fullest occupancy, at most all particles, plus the longest history) and sorted by
     partner gid; history partners already among the candidates take their lambda, the others
     (far partners) are inserted. No buffer is reallocated inside the candidate loop: growable
-    buffers there made the build 4x slower (measured: docs/research/convergence.md, section 3o). The
-    candidates of the 3^b cells around a cell (positions, diameters, gids, indices) are
-    gathered into one contiguous buffer and kept while the next local is in the same cell
-    (the locals are sorted by cell): 10 - 30% faster builds, the same rows (section 3p).
+    buffers there made the build 4x slower (measured: docs/research/convergence.md, section 3o).
     """
     pair_offsets = np.zeros(n_local + 1, dtype=np.int64)
     if n_local == 0:
@@ -167,20 +169,31 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
     n_cells = dense_cells(dims, n_total)
     dense = n_cells > 0
     order, skeys, cell_start = _cell_index(keys, n_cells)
-    n_nb = 3 ** b
-    offs = np.empty((n_nb, b), dtype=np.int64)
-    for m in range(n_nb):
-        t = m
+    # positions, diameters and gids in cell order
+    xs = np.empty((n_total, b))
+    ds = np.empty(n_total)
+    gs = np.empty(n_total, dtype=np.int64)
+    for q in range(n_total):
+        j = order[q]
         for k in range(b):
+            xs[q, k] = x[j, k]
+        ds[q] = diam[j]
+        gs[q] = gid[j]
+    n_rows_nb = 3 ** (b - 1)
+    offs = np.empty((n_rows_nb, b), dtype=np.int64)
+    for m in range(n_rows_nb):
+        t = m
+        for k in range(b - 1):
             offs[m, k] = t % 3 - 1
             t //= 3
+        offs[m, b - 1] = 0
     # the longest row: every particle of the 3^b cells around (at most all of them), plus the
     # longest history
     most_hist = 0
     for i in range(n_local):
         if hist_offsets[i + 1] - hist_offsets[i] > most_hist:
             most_hist = hist_offsets[i + 1] - hist_offsets[i]
-    row_cap = min(n_nb * _max_occupancy(skeys, cell_start), n_total) + most_hist + 1
+    row_cap = min(3 * n_rows_nb * _max_occupancy(skeys), n_total) + most_hist + 1
     row_g = np.empty(row_cap, dtype=np.int64)
     row_j = np.empty(row_cap, dtype=np.int64)
     row_l = np.empty(row_cap)
@@ -193,72 +206,81 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
     pair_j = np.empty(cap, dtype=np.int32)
     pair_lambda = np.empty(cap)
     coord = np.empty(b, dtype=np.int64)
+    # the runs of the cell order holding the candidates of the current cell
+    run_start = np.empty(n_rows_nb, dtype=np.int64)
+    run_end = np.empty(n_rows_nb, dtype=np.int64)
+    n_runs = 0
+    run_key = np.int64(-1)
+    last = b - 1
     missing = 0
     pos = 0
-    # the candidates of the 3^b cells around one cell, gathered once for all the (spatially
-    # sorted) locals of that cell: positions, diameters, gids and indices in a row each
-    cand_x = np.empty((row_cap, b))
-    cand_d = np.empty(row_cap)
-    cand_g = np.empty(row_cap, dtype=np.int64)
-    cand_j = np.empty(row_cap, dtype=np.int64)
-    n_cand = 0
-    cand_key = np.int64(-1)
     for i in range(n_local):
         cnt = 0
-        if keys[i] != cand_key:
-            cand_key = keys[i]
-            n_cand = 0
+        if keys[i] != run_key:
+            run_key = keys[i]
             t = keys[i]
             for k in range(b - 1, -1, -1):
                 coord[k] = t % dims[k]
                 t //= dims[k]
-            for m in range(n_nb):
-                nkey = np.int64(0)
+            c_lo = max(coord[last] - 1, 0)
+            c_hi = min(coord[last] + 1, dims[last] - 1)
+            n_runs = 0
+            for m in range(n_rows_nb):
+                base = np.int64(0)
                 ok = True
-                for k in range(b):
+                for k in range(b - 1):
                     c = coord[k] + offs[m, k]
                     if c < 0 or c >= dims[k]:
                         ok = False
                         break
-                    nkey = nkey * dims[k] + c
+                    base = base * dims[k] + c
                 if not ok:
                     continue
+                base = base * dims[last]
                 if dense:
-                    s0 = cell_start[nkey]
-                    s1 = cell_start[nkey + 1]
+                    s0 = np.int64(cell_start[base + c_lo])
+                    s1 = np.int64(cell_start[base + c_hi + 1])
                 else:
-                    s0 = _searchsorted_left(skeys, nkey)
-                    s1 = s0
-                    while s1 < skeys.shape[0] and skeys[s1] == nkey:
-                        s1 += 1
-                for q in range(s0, s1):
-                    j = order[q]
-                    for k in range(b):
-                        cand_x[n_cand, k] = x[j, k]
-                    cand_d[n_cand] = diam[j]
-                    cand_g[n_cand] = gid[j]
-                    cand_j[n_cand] = j
-                    n_cand += 1
+                    s0 = _searchsorted_left(skeys, base + c_lo)
+                    s1 = _searchsorted_left(skeys, base + c_hi + 1)
+                if s1 > s0:
+                    run_start[n_runs] = s0
+                    run_end[n_runs] = s1
+                    n_runs += 1
         di = diam[i]
-        for c in range(n_cand):
-            r2 = 0.0
-            for k in range(b):
-                dx = x[i, k] - cand_x[c, k]
-                r2 += dx * dx
-            rc = 0.5 * (di + cand_d[c]) + skin
-            if r2 < rc * rc:
-                j = cand_j[c]
-                if j == i:
-                    continue
-                row_g[cnt] = cand_g[c]
-                row_j[cnt] = j
-                cnt += 1
+        # every candidate's place in the cell order is written, and kept (cnt advances) when
+        # it is within reach: no branch to mispredict in the hottest loop
+        for r in range(n_runs):
+            for q in range(run_start[r], run_end[r]):
+                r2 = 0.0
+                for k in range(b):
+                    dx = x[i, k] - xs[q, k]
+                    r2 += dx * dx
+                rc = 0.5 * (di + ds[q]) + skin
+                row_j[cnt] = q
+                cnt += np.int64(r2 < rc * rc)
+        kept = 0
+        for c in range(cnt):
+            q = row_j[c]
+            j = order[q]
+            if j != i:
+                row_g[kept] = gs[q]
+                row_j[kept] = j
+                kept += 1
+        cnt = kept
         _sort_row(row_g, row_j, cnt)
         for q in range(cnt):
             row_l[q] = 0.0
+        # the history (in gid order, as ``history`` gives it) merged into the sorted row
+        q = 0
+        g_prev = np.int64(-1)
         for e in range(hist_offsets[i], hist_offsets[i + 1]):
             g = hist_gid[e]
-            q = _searchsorted_left(row_g[:cnt], g)
+            if g < g_prev:  # not in gid order (a history read from elsewhere): search afresh
+                q = 0
+            g_prev = g
+            while q < cnt and row_g[q] < g:
+                q += 1
             if q < cnt and row_g[q] == g:  # a candidate (or a repeated partner): the larger lambda
                 if hist_lambda[e] > row_l[q]:
                     row_l[q] = hist_lambda[e]
