@@ -69,7 +69,7 @@ DEFAULTS = {
     "stop": {"rule": None, "eps": 1e-5, "max_iter": "auto", "max_seconds": 0.0, "overlap": 1e-3,
              "kkt": 1e-2, "w_rtol": 1e-4, "w_window": 0.1, "check_every": 50, "watchdog": True,
              "jammed_rtol": 1e-3},
-    "neighbor": {"skin": 0.3, "rebalance": 1.2, "max_pair_gib": None},
+    "neighbor": {"skin": 0.3, "adaptive_skin": True, "rebalance": 1.2, "max_pair_gib": None},
     "output": {"progress_every": 0.5, "dir": None, "metrics_every": 0, "w_optimum": None,
                "snapshots": True, "snapshot_every": 0, "checkpoint_every": 0},
     "container": {"kind": "none", "lo": None, "hi": None, "centre": None, "radius": None,
@@ -337,6 +337,7 @@ class Neighbor:
     skin: float
     rebalance: float
     max_pair_gib: Optional[float]
+    adaptive_skin: bool = True  # each build's skin from the last period's speed, at most skin
 
 
 @dataclass(frozen=True)
@@ -648,6 +649,9 @@ def validate(scene, n_given=True):
     if not _num(scene, "stop.jammed_rtol") < 1:
         raise SceneError(f"key 'stop.jammed_rtol' is a relative change of W, in (0, 1), "
                          f"got {scene['stop']['jammed_rtol']!r}")
+    if not isinstance(scene["neighbor"]["adaptive_skin"], bool):
+        raise SceneError(f"key 'neighbor.adaptive_skin' must be true or false, "
+                         f"got {scene['neighbor']['adaptive_skin']!r}")
     if _num(scene, "neighbor.skin") > MAX_SKIN:
         raise SceneError(f"key 'neighbor.skin' is in largest diameters, at most {MAX_SKIN:g} "
                          f"(the pair rows grow like (1 + skin)^dim), got {scene['neighbor']['skin']!r}")

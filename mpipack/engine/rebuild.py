@@ -23,6 +23,20 @@ from mpipack.engine.timers import BALANCE, BORDERS, EXCHANGE, ROWS
 
 
 
+# neighbor.adaptive_skin: the skin s minimises the cost of an iteration, pair work growing
+# like s (the entries of the shell d < r < d + s) and the build's cost spread over the
+# (s / 2) / u iterations it lasts at the last period's speed u: s = sqrt(SKIN_COST u d), with
+# SKIN_COST = 2 (build cost per sphere) / (pass cost per sphere per unit of skin), measured
+# (docs/benchmarks.md, "An adaptive skin"); at least SKIN_MIN d, at most neighbor.skin d
+SKIN_COST = 5.0
+SKIN_MIN = 0.05
+
+
+def next_skin(rate, d_max, skin_max):
+    """The skin of the next build, for particles moving by at most ``rate`` an iteration."""
+    return min(skin_max, max(SKIN_MIN * d_max, (SKIN_COST * rate * d_max) ** 0.5))
+
+
 def rebuild(s, rebalance=False, hist=None):
     """Exchange (and rebalance), sort locals by cell, borders, pair rows. Collective.
 

@@ -497,6 +497,8 @@ def result_summary(scene, comm, res, wall, profile):
     }
     for k in ("rebuilds", "rebalances", "far_ghosts", "max_imbalance", "inner_iterations"):
         out[k] = res[k]
+    if res["rebuilds"]:  # the builds' Verlet skins, in largest diameters (neighbor.adaptive_skin)
+        out["skin_range"] = [res["skin_min"], res["skin_max"]]
     if "schedule" in res:
         out["schedule"] = res["schedule"]  # phase reached, its switch, restarts, ALM steps
     if profile:

@@ -79,8 +79,13 @@ class Solver:
         self.method = for_scene(scene)
         self.metrics_kernel = kernels.pair_metrics(scene.method.form)
         self.d_max = scene.particles.d_max
-        self.skin = float(scene.neighbor.skin) * self.d_max
-        self.r_ghost = self.d_max + self.skin
+        # the Verlet skin: scene.neighbor.skin, or under neighbor.adaptive_skin chosen at each
+        # build from the speed of the last period, at most that (``rebuild.next_skin``)
+        self.skin_max = float(scene.neighbor.skin) * self.d_max
+        self.adaptive_skin = bool(scene.neighbor.adaptive_skin) and self.method.skin_free
+        self.set_skin(self.skin_max)
+        self.built_at = None  # the iteration of the last build (None: before the loop)
+        self.rate = None  # the largest displacement per iteration over the last period
         self.state = State(self.dim, self.n)
         self.state.walls = walls.walls_of(scene.container, self.dim)
         self.pot = potential.parameters(scene)  # grad W per sphere (``kernels.potential``)
@@ -94,8 +99,9 @@ class Solver:
         self.point = (np.array(scene.potential.point, dtype=np.float64)
                       if scene.potential.kind == "point" else None)
         self.sum_x = None
+        # skin_min, skin_max: the range of the builds' skins, in largest diameters
         self.counters = {"rebuilds": 0, "rebalances": 0, "far_ghosts": 0, "max_imbalance": 1.0,
-                         "inner_iterations": 0}
+                         "inner_iterations": 0, "skin_min": math.inf, "skin_max": 0.0}
         self.timers = timers or PhaseTimers()
         self.clock0 = time.perf_counter()  # the loop's wall clock origin (set by the loop)
         self.stop_rule = None  # the loop's (``stop.rule``): its state travels in checkpoints
@@ -338,6 +344,8 @@ class Solver:
                 exact = math.sqrt(self.comm.allreduce(np.array([local]), op="max")[0])
             moves.assumed = 0.0  # the bound is now exact (or zero after the rebuild)
             if exact > 0.5 * self.skin or not math.isfinite(exact):
+                if self.built_at is not None and math.isfinite(exact):
+                    self.rate = exact / max(1, st.iteration + 1 - self.built_at)
                 self.timers.lap(FORWARD)
                 self.rebuild()
                 return
@@ -346,11 +354,24 @@ class Solver:
             comm_mod.forward(self.comm, self.plan, st.x, st.n_local)
         self.timers.lap(FORWARD)
 
+    def set_skin(self, skin):
+        """The skin of the next build, and the ghost layer that goes with it."""
+        self.skin = skin
+        self.r_ghost = self.d_max + skin
+
     def rebuild(self, rebalance=False, hist=None):
-        """Exchange (and rebalance), sort locals by cell, borders, pair rows (``engine.rebuild``)."""
+        """Exchange (and rebalance), sort locals by cell, borders, pair rows (``engine.rebuild``).
+        Under an adaptive skin the build takes the skin that suits the last period's speed."""
+        if self.adaptive_skin and self.rate is not None:
+            self.set_skin(rebuild_mod.next_skin(self.rate, self.d_max, self.skin_max))
+            self.rate = None
         with self.comm.charged_to("rebuild"):
             rebuild_mod.rebuild(self, rebalance, hist)
         self.moves.reset()
+        self.built_at = self.state.iteration + 1
+        skin = self.skin / self.d_max
+        self.counters["skin_min"] = min(self.counters["skin_min"], skin)
+        self.counters["skin_max"] = max(self.counters["skin_max"], skin)
 
     # ---- the state out (collective) -------------------------------------------------------
     def finish(self):

@@ -31,6 +31,10 @@ class Method:
     watch_stall = True
     #: the work of an iteration counts inner iterations (NAP/NAV)
     counts_inner = False
+    #: the iterates do not depend on how far the pair rows reach beyond the contacts (entries
+    #: with phi <= 0 and lambda = 0 add nothing), so the skin may change from build to build
+    #: (``neighbor.adaptive_skin``); NAP/NAV's inner solves linearise every entry: False
+    skin_free = True
 
     #: W is gravity's (``kernels.potential``): the step kernel also sums W / g
     gravity = False

@@ -41,6 +41,7 @@ class Nested(PaperScheme):
 
     extra_fields = ("x_lin",)
     counts_inner = True
+    skin_free = False
 
     def __init__(self, scene):
         m = scene.method
