@@ -27,7 +27,8 @@ from mpipack.engine.timers import BALANCE, BORDERS, EXCHANGE, ROWS
 # like s (the entries of the shell d < r < d + s) and the build's cost spread over the
 # (s / 2) / u iterations it lasts at the last period's speed u: s = sqrt(SKIN_COST u d), with
 # SKIN_COST = 2 (build cost per sphere) / (pass cost per sphere per unit of skin), measured
-# (docs/benchmarks.md, "An adaptive skin"); at least SKIN_MIN d, at most neighbor.skin d
+# (docs/benchmarks.md, "Cheaper rows, an adaptive skin and a shorter quench"); at least
+# SKIN_MIN d, at most neighbor.skin d
 SKIN_COST = 5.0
 SKIN_MIN = 0.05
 

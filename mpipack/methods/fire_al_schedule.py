@@ -156,10 +156,10 @@ QN_DUAL_STEP = {1: 1.0, 2: 0.5, 3: 1.0}
 # denser for the certificate), then a multiplier step forced after QUENCH_MAX_INNER iterations
 # and c_b grown at every one (the overlap down to stop.overlap at once, as a two-stage quench
 # raises its stiffness): 3D N = 1e4 seeds 1 - 4 jam after 1900 - 2350 iterations against
-# 8250 - 9250, W 0.2 - 0.3% below LAMMPS's two-stage quench (QUENCH_MAX_INNER 300: 2250 - 2850;
-# 150 and 100 no better: docs/benchmarks.md, "Jammed finish"). In 2D the schedule already jams in 2300 - 2900 (N = 2000), and a
-# quench did not pay (N = 2000 and 2e4, seeds 1 - 3: about the same iterations, W higher;
-# docs/benchmarks.md, "Jammed finish")
+# 8250 - 9250, W 0.1 - 0.3% below LAMMPS's two-stage quench (QUENCH_MAX_INNER 300: 2250 - 2850;
+# 150 and 100 no better). In 2D the schedule already jams in 2300 - 2900 (N = 2000), and a
+# quench did not pay (N = 2000 and 2e4, seeds 1 - 3: about the same iterations, W higher).
+# docs/benchmarks.md, "Jammed finish"
 QUENCH = {1: False, 2: False, 3: True}
 QUENCH_WINDOW, QUENCH_SETTLED, QUENCH_MAX_INNER = 100, 1e-3, 200
 # FIRE's dt_max = DT_LEAPFROG / sqrt(k_rel): the leapfrog's stability bound dt^2 lambda_max < 4
