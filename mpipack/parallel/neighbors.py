@@ -366,13 +366,9 @@ def _sort_row(g, j, n):
 @njit(cache=True)
 def spatial_order(x, n, h):
     """A permutation of x[:n] that visits cells of size h in row-major order (cache locality),
-    stable within a cell: a counting sort over the cells when the grid is at most a few cells
-    per particle (as in the rows' build), else a merge sort of the keys (the same order)."""
+    stable within a cell: the rows' build's own sort (``_cell_index``)."""
     keys, lo, dims = cell_keys(x, n, h)
-    n_cells = dense_cells(dims, n)
-    if n_cells == 0:
-        return np.argsort(keys, kind="mergesort")
-    order, _, _ = _cell_index(keys, n_cells)
+    order, _, _ = _cell_index(keys, dense_cells(dims, n))
     return order
 
 
