@@ -92,6 +92,61 @@ def _term(lam, phi, phin, g2, hess, unit, a3, a4, beta, lam_floor, clip, weighte
 
 
 @njit(cache=True, inline="always")
+def _pair_row(form, dim, x, xi0, xi1, xi2, di, e0, e1, pair_j, diam, pair_lambda, a3, a4, beta,
+              lam_floor, clip, weighted_dual, update_lambda, min_ratio2):
+    """One sphere's pair row of a pass (see the module docstring): (F_i as three scalars, the
+    row's dual gain, its Gershgorin sum, its entries with lambda > 0, min_ratio2 updated).
+    Inlined with literal flags where the pass calls it, so that LLVM folds their branches."""
+    f0 = 0.0
+    f1 = 0.0
+    f2 = 0.0
+    gain = 0.0
+    row = 0.0
+    n_active = 0
+    # unsigned indices: numba wraps a signed index around (x[-1]) with a test and the
+    # array's shape, reloaded from the stack for every entry in this register-starved loop
+    for e in range(np.uint64(e0), np.uint64(e1)):
+        j = np.uint64(pair_j[e])
+        d0, d1, d2, r2 = separation(dim, x, xi0, xi1, xi2, j)
+        dij = 0.5 * (di + diam[j])
+        phi, r = constraint(form, dij, r2)
+        lam0 = pair_lambda[e]
+        if phi <= 0.0 and lam0 == 0.0:
+            # an entry of the skin's shell: no dual step moves its lambda from 0 (its
+            # phi <= 0), no force (m = max(0, a4 w phi~) = 0, or lam = 0 without the clip),
+            # no gain and no overlap: it adds nothing (the same bits as the terms below)
+            continue
+        # |grad_i phi|^2 and the curvature of phi along the pair (the Gershgorin row)
+        if form == SMOOTH:
+            g2 = 4.0 * r2
+            hess = 2.0
+        else:
+            g2 = 1.0
+            hess = 1.0 / r if r > 0.0 else 0.0
+        # the penalty's phi in units of the pair's diameter (clip form): phi / d_ij^p
+        unit = 1.0
+        if clip:
+            unit = 1.0 / (dij * dij) if form == SMOOTH else 1.0 / dij
+        lam, m, gain_i, row_i = _term(lam0, phi, phi * unit, g2, hess, unit, a3, a4, beta,
+                                      lam_floor, clip, weighted_dual, update_lambda)
+        if update_lambda:
+            pair_lambda[e] = lam
+        # branch-free from here (selects, not jumps: whether a pair overlaps is a coin
+        # toss in a packing); m = 0 adds exact zeros to the row and the force (which is
+        # never -0.0: it starts at +0.0 and x - x = +0.0)
+        if (phi > 0.0) & (r2 < min_ratio2 * (dij * dij)):
+            min_ratio2 = r2 / (dij * dij)
+        gain += gain_i
+        n_active += 1 if lam > 0.0 else 0
+        row += row_i
+        g = gradient_scale(form, m, r)  # m grad_i phi = -g (X_i - X_j)
+        f0 -= g * d0
+        f1 -= g * d1
+        f2 -= g * d2
+    return f0, f1, f2, gain, row, n_active, min_ratio2
+
+
+@njit(cache=True, inline="always")
 def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda,
                   walls, wall_lambda, xbar, pot, a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual,
                   vmax, update_lambda, acc, maxima, all_sums):
@@ -115,44 +170,23 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
     n_active = 0
     for i in range(n_local):
         xi0, xi1, xi2 = coordinates(dim, x, i)
-        f0 = 0.0
-        f1 = 0.0
-        f2 = 0.0
         di = diam[i]
-        gain = 0.0
-        row = 0.0
-        for e in range(pair_offsets[i], pair_offsets[i + 1]):
-            j = pair_j[e]
-            d0, d1, d2, r2 = separation(dim, x, xi0, xi1, xi2, j)
-            dij = 0.5 * (di + diam[j])
-            phi, r = constraint(form, dij, r2)
-            # |grad_i phi|^2 and the curvature of phi along the pair (the Gershgorin row)
-            if form == SMOOTH:
-                g2 = 4.0 * r2
-                hess = 2.0
-            else:
-                g2 = 1.0
-                hess = 1.0 / r if r > 0.0 else 0.0
-            # the penalty's phi in units of the pair's diameter (clip form): phi / d_ij^p
-            unit = 1.0
-            if clip:
-                unit = 1.0 / (dij * dij) if form == SMOOTH else 1.0 / dij
-            lam, m, gain_i, row_i = _term(pair_lambda[e], phi, phi * unit, g2, hess, unit, a3, a4, beta,
-                                          lam_floor, clip, weighted_dual, update_lambda)
-            if update_lambda:
-                pair_lambda[e] = lam
-            if phi > 0.0:
-                if r2 < min_ratio2 * (dij * dij):
-                    min_ratio2 = r2 / (dij * dij)
-            gain += gain_i
-            if lam > 0.0:
-                n_active += 1
-            if m != 0.0:
-                row += row_i
-                g = gradient_scale(form, m, r)  # m grad_i phi = -g (X_i - X_j)
-                f0 -= g * d0
-                f1 -= g * d1
-                f2 -= g * d2
+        e0, e1 = pair_offsets[i], pair_offsets[i + 1]
+        # the flags as literals in the two passes of the fire phase (FIRE's with its dual step,
+        # and without: L-BFGS's gradient, FIRE's once c_b has grown): their branches folded
+        if clip and weighted_dual and update_lambda:
+            f0, f1, f2, gain, row, n_row, min_ratio2 = _pair_row(
+                form, dim, x, xi0, xi1, xi2, di, e0, e1, pair_j, diam, pair_lambda, a3, a4, beta,
+                lam_floor, True, True, True, min_ratio2)
+        elif clip and weighted_dual:
+            f0, f1, f2, gain, row, n_row, min_ratio2 = _pair_row(
+                form, dim, x, xi0, xi1, xi2, di, e0, e1, pair_j, diam, pair_lambda, a3, a4, beta,
+                lam_floor, True, True, False, min_ratio2)
+        else:
+            f0, f1, f2, gain, row, n_row, min_ratio2 = _pair_row(
+                form, dim, x, xi0, xi1, xi2, di, e0, e1, pair_j, diam, pair_lambda, a3, a4, beta,
+                lam_floor, clip, weighted_dual, update_lambda, min_ratio2)
+        n_active += n_row
         # the container's walls (``kernels.walls``), each term as a pair's with the sphere's
         # own diameter as size: phi = c (d_i/2 - s), |grad phi|^2 = c^2, |Hess phi| = c / rho
         for wall in range(walls.shape[0]):
