@@ -1,8 +1,9 @@
 """stop.rule = "jammed": the quick finish (mpipack/stop/rule.py). It stops before the certificate
 after the first iteration where the overlap is within stop.overlap and W has settled to
-stop.jammed_rtol (whatever stop.check_every), exits 0 with a summary and a verdict that say "jammed (not certified)" (the
-KKT residual reported, not required), on the same iteration and in the same bits on 1, 2 and 3
-ranks and across a restart; bad values of stop.jammed_rtol are refused in one line (exit 2).
+stop.jammed_rtol (whatever stop.check_every), exits 0 with a summary and a verdict that say
+"jammed (not certified)" (the KKT residual reported, not required), on the same iteration and in
+the same bits on 1, 2 and 3 ranks and across a restart; bad values of stop.jammed_rtol are
+refused in one line (exit 2).
 """
 
 import subprocess
@@ -89,9 +90,9 @@ def test_same_stop_on_1_2_3_ranks_and_the_verdict_line(tmp_path):
 
 @pytest.mark.parametrize("cut", [900, 923])
 def test_a_restart_across_the_check_stops_on_the_same_iteration(tmp_path, cut):
-    """Cut at an iteration that did not stop (900) and two before the stopping one (923; the state of 924 is certified by its final check): the
-    restarted run's W history comes from the checkpoint and it stops where the straight run
-    stops, in the same bits."""
+    """Cut at an iteration that did not stop (900) and two before the stopping one (923; a run
+    cut at 924 ends certified by its final check): the restarted run's W history comes from the
+    checkpoint and it stops where the straight run stops, in the same bits."""
     straight = run_rule(None, FIRE_AL, "jammed", gather=True)
     assert straight.stop_reason == "jammed" and cut < straight.iterations
     out = str(tmp_path / "out")
