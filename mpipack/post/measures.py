@@ -62,7 +62,8 @@ def cluster_radius(dim, r_gyr):
 
 def density_profile(comm, local, xbar, radii):
     """phi(R) for each R of radii (shape (K,)): exact sums of |B_i ∩ B(Xbar, R)| over the
-    owned spheres, reduced exactly; shape (K,)."""
+    owned spheres, reduced exactly; shape (K,). NaN where R = 0 (no ball to fill: the
+    gyration radius of a single sphere)."""
     radii = np.ascontiguousarray(radii, dtype=np.float64)
     acc = exactsum.new_accumulator(len(radii))
     n = local.n_own
@@ -70,7 +71,8 @@ def density_profile(comm, local, xbar, radii):
                             np.ascontiguousarray(xbar, dtype=np.float64), radii, acc)
     acc = comm.allreduce(acc)
     dim = local.x.shape[1]
-    return np.array([exactsum.value(acc, q) / metrics.ball_measure(dim, R) for q, R in enumerate(radii)])
+    balls = [metrics.ball_measure(dim, R) for R in radii]
+    return np.array([exactsum.value(acc, q) / m if m > 0 else math.nan for q, m in enumerate(balls)])
 
 
 def plateau(radii, phi, d_mean, r_cluster, tol=PLATEAU_TOLERANCE):
