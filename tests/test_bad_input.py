@@ -116,4 +116,6 @@ def test_max_seconds_bounds_the_run(tmp_path):
     assert proc.returncode == 4, describe(proc)
     import json
     s = json.loads((tmp_path / "o" / "summary.json").read_text())
-    assert s["stop_reason"] == "max_seconds" and s["loop_seconds"] < 5, s
+    # the loop stops after the first iteration past 1 s; the bound leaves room for a stalled
+    # shared machine (a clean-clone CI once took 5.0 s here, the same test alone 1.0 s)
+    assert s["stop_reason"] == "max_seconds" and s["loop_seconds"] < 10, s
