@@ -19,7 +19,7 @@ from support import brute_force_figures
 
 from conftest import assert_bitwise_equal, describe, mpi_env, mpipack_run
 
-# the default scene's schedule (fire-al), small: certified at 1100 iterations, jammed at 925
+# the default scene's schedule (fire-al), small: certified at 1100 iterations, jammed at 1004
 FIRE_AL = ["n=300"]
 # the fixed DAHA of the paper's 3D scene, smaller: jammed at 3579 iterations; no certificate
 # within 10000
@@ -88,11 +88,11 @@ def test_same_stop_on_1_2_3_ranks_and_the_verdict_line(tmp_path):
         assert_bitwise_equal(ref[1], d, f"jammed stop, {ranks} ranks against 1")
 
 
-@pytest.mark.parametrize("cut", [900, 923])
+@pytest.mark.parametrize("cut", [900, 1002])
 def test_a_restart_across_the_check_stops_on_the_same_iteration(tmp_path, cut):
-    """Cut at an iteration that did not stop (900) and two before the stopping one (923; a run
-    cut at 924 ends certified by its final check): the restarted run's W history comes from the
-    checkpoint and it stops where the straight run stops, in the same bits."""
+    """Cut at an iteration that did not stop (900, in the 2D quench's stiff phase) and two
+    before the stopping one (1002): the restarted run's W history and the schedule's quench
+    come from the checkpoint and it stops where the straight run stops, in the same bits."""
     straight = run_rule(None, FIRE_AL, "jammed", gather=True)
     assert straight.stop_reason == "jammed" and cut < straight.iterations
     out = str(tmp_path / "out")

@@ -189,13 +189,37 @@ def test_a_jammed_3d_run_whose_w_still_falls_waits_for_the_soft_phase():
     assert it - 1 == wait, (it, wait)
 
 
-def test_a_jammed_2d_run_does_not_quench():
-    """2D jams as soon without (docs/benchmarks.md): the certified schedule's first step."""
+def test_a_jammed_2d_run_quenches_from_a_smaller_ball():
+    """2D jammed: spread to a ball of JAMMED_SPREAD law radii (2, not sqrt 6), a shorter fall;
+    the first multiplier step once W has settled, then one every QUENCH_MAX_INNER, c_b doubling
+    at each (2D's growth) though the overlap halves."""
     sch = jammed_schedule(2)
-    assert not sch.quench
-    wait = schedule.FIRST_INNER + sch.fall_iterations
-    step = run_until_step(sch, 2, 0.01, wait + 10)
-    assert step - 1 == wait, (step, wait)
+    certified = schedule.FireALSchedule(2000, 2, 1.0, "S", overlap_tol=1e-3)
+    assert sch.quench and not certified.quench
+    radius = certified.spread_radius / schedule.SPREAD  # the law's radius
+    assert sch.spread_radius == pytest.approx(2.0 * radius) and schedule.SPREAD > 2.4
+    assert sch.fall_iterations < 0.7 * certified.fall_iterations
+    step = run_until_step(sch, 2, 0.01, schedule.FIRST_INNER)
+    assert step == 1 + 2 * schedule.QUENCH_WINDOW, step
+    cbs = [sch.s.cb]
+    for overlap in (2.5e-3, 1.2e-3, 5.5e-4):
+        nxt = run_until_step(sch, step + 1, overlap, schedule.QUENCH_MAX_INNER + 10)
+        assert nxt is not None and nxt - step == schedule.QUENCH_MAX_INNER, (step, nxt)
+        step = nxt
+        cbs.append(sch.s.cb)
+    assert cbs == [schedule.C_B[2] * schedule.CB_GROW[2] ** k for k in (1, 2, 3, 4)]
+
+
+def test_a_jammed_2d_start_between_the_two_balls_explodes_instead():
+    """The spread ball must hold more W than the start: a start with W between that of the
+    jammed ball (2 R) and the certified one (sqrt 6 R) is spread only by the certified schedule."""
+    for jammed, spread in ((False, True), (True, False)):
+        sch = schedule.FireALSchedule(2000, 2, 1.0, "S", overlap_tol=1e-3, jammed=jammed)
+        fig = figure(sch, iteration=1, max_overlap=0.9)
+        fig["W"] = 5.0 * sch.w_eq  # 2^2 = 4 < 5 < 6
+        sch.observe(fig)
+        assert sch.phase == "explode"
+        assert (schedule.Request.EQUALISE in sch.take_pending()) == spread, jammed
 
 
 def test_the_quench_mark_is_in_the_checkpoint():

@@ -39,11 +39,15 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
     ctx = hooks_mod.Context(solver)
     start_iter = solver.state.iteration
     start_inner = solver.counters["inner_iterations"]
-    t_loop = solver.clock0 = time.perf_counter()
-    timers.start()
+    # the wall clock of the run's figures (max_seconds, the wall-time limit) starts here; the
+    # loop's own seconds (loop_seconds, the profile) after the at_start hooks (the snapshot of
+    # iteration 0: output, as the final one is; at_start_seconds)
+    t_start = solver.clock0 = time.perf_counter()
     for h in hooks:
         if h.at_start:
             h(ctx)
+    t_loop = time.perf_counter()
+    timers.start()
     first_iteration = math.nan
     reason = rule.before(solver)
     while reason is None:
@@ -81,6 +85,7 @@ def run(scene, comm, hooks=(), source=None, solver=None, profile=False):
         "stop_reason": reason,
         "relative_change": ctx.figures.get("relative_change", math.nan),
         "setup_seconds": setup_seconds,
+        "at_start_seconds": t_loop - t_start,
         "loop_seconds": loop_seconds,
         # from the start of the process (interpreter, imports, numba cache, set-up) to the
         # end of the first iteration of this loop

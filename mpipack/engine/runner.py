@@ -492,6 +492,7 @@ def result_summary(scene, comm, res, wall, profile):
         "particle_iterations_per_second": res["particle_iterations_per_second"],
         "particle_iterations_per_second_per_rank": res["particle_iterations_per_second"] / comm.size,
         "loop_seconds": res["loop_seconds"], "setup_seconds": res["setup_seconds"],
+        "at_start_seconds": res["at_start_seconds"],
         "first_iteration_seconds": res["first_iteration_seconds"],
         "active_pairs": res["active_pairs"],
     }

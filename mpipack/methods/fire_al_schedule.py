@@ -18,7 +18,8 @@ S: sum lambda d^2 = W, NS: sum lambda d = 2W):
     lam_bar = W_eq / (b N d^2) (S)  or  2 W_eq / (b N d) (NS),  g2 = 4 d^2 (S) or 1 (NS)
 
 0. Spread (a start whose first max overlap exceeds 0.5 d and whose W is below that of a uniform
-   ball of radius SPREAD R, SPREAD = sqrt 6: a sixth of the packing's density in 2D): every
+   ball of radius SPREAD R, SPREAD = sqrt 6: a sixth of the packing's density in 2D; a 2D
+   jammed finish 2 R, JAMMED_SPREAD): every
    centre moves along its ray from Xbar to SPREAD R F(r)^(1/b), F the cloud's radial
    distribution (an exact histogram summed over ranks): a uniform dilute ball, directions and
    the order of radii kept (``init.equalise_radially``). A dense Gaussian start otherwise
@@ -159,9 +160,20 @@ QN_DUAL_STEP = {1: 1.0, 2: 0.5, 3: 1.0}
 # 8250 - 9250, W 0.1 - 0.3% below LAMMPS's two-stage quench (QUENCH_MAX_INNER 300: 2250 - 2850;
 # 150 and 100 no better). In 2D the schedule already jams in 2300 - 2900 (N = 2000), and a
 # quench did not pay (N = 2000 and 2e4, seeds 1 - 3: about the same iterations, W higher).
-# docs/benchmarks.md, "Jammed finish"
-QUENCH = {1: False, 2: False, 3: True}
+# docs/benchmarks.md, "Jammed finish". 2D quenches too since session 30, from a smaller spread
+# ball (JAMMED_SPREAD below): N = 2e4 seeds 1 - 4 then jam after 6539 - 7214 iterations against
+# 7283 - 16042 (the first multiplier step waited FIRST_INNER beyond the fall whenever the inner
+# residual missed eta), N = 2000 seeds 5 - 12 after 1803 - 2092 against 2228 - 2502
+QUENCH = {1: False, 2: True, 3: True}
 QUENCH_WINDOW, QUENCH_SETTLED, QUENCH_MAX_INNER = 100, 1e-3, 200
+# the spread ball's radius (in law radii) of a jammed finish: the fall back from SPREAD R at the
+# speed cap VMAX was ~3/4 of a 2D jammed run (N = 2000: iterations ~1800 of 2300). In 2D a ball
+# of 2 R (a fourth of the packing's density) falls in ~2/3 of the time and still separates
+# cleanly (N = 2000 seeds 1 - 12: 1719 - 1925 iterations without the quench; 1.8 R and 1.6 R:
+# 3245 and 4301 on one seed each, the crowded ball's explosion flinging pairs). In 3D a 2 R ball
+# jams 17% sooner but looser, W 0.04 - 0.2% above LAMMPS's quench on 3 seeds of 4 (N = 1e4):
+# kept at SPREAD. docs/benchmarks.md, "A 2D jammed finish sooner than the quench (session 30)"
+JAMMED_SPREAD = {1: SPREAD, 2: 2.0, 3: SPREAD}
 # FIRE's dt_max = DT_LEAPFROG / sqrt(k_rel): the leapfrog's stability bound dt^2 lambda_max < 4
 # with lambda_max bounded by the Gershgorin row k_rel
 DT_LEAPFROG = 2.0
@@ -291,8 +303,10 @@ class FireALSchedule:
         # pair's own size, in the kernel), and the explosion's a3 (the weight of grad W) is
         # gamma^2 d^p / 2, so that a scene scaled by any length is the same run
         self.phi_scale = d * d if form == "S" else d
-        self.spread_radius = SPREAD * law["radius"]  # the uniform ball of step 0
-        self.fall_iterations = int(2.0 * max(SPREAD - 1.0, 0.0) * law["radius"] / (VMAX * d))
+        # the uniform ball of step 0, spread_factor law radii across (see JAMMED_SPREAD)
+        self.spread_factor = JAMMED_SPREAD[dim] if jammed else SPREAD
+        self.spread_radius = self.spread_factor * law["radius"]
+        self.fall_iterations = int(2.0 * max(self.spread_factor - 1.0, 0.0) * law["radius"] / (VMAX * d))
         self.explode_cap = EXPLODE_CAP * law["radius"]
         self.lam_floor = FLOOR * law["lam_bar"]
         # the floor of a row's dual gain: |grad phi|^2 of one pair at distance d/2 (S: d^2; NS: 1)
@@ -325,7 +339,8 @@ class FireALSchedule:
                 if s.phase == Phase.EXPLODE and not self.spread:  # a dense start in a container
                     s.pending = [Request.FILL, Request.RESET_LAMBDA, Request.RESTART]
                     s.spread = True
-                elif s.phase == Phase.EXPLODE and SPREAD > 0 and fig["W"] < SPREAD ** 2 * self.w_eq:
+                elif (s.phase == Phase.EXPLODE and self.spread_factor > 0
+                      and fig["W"] < self.spread_factor ** 2 * self.w_eq):
                     s.pending = [Request.EQUALISE, Request.RESET_LAMBDA, Request.RESTART]
                     s.spread = True
             elif fig["max_overlap"] < OV_END or fig["W"] > W_SWITCH * self.w_eq:
