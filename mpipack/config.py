@@ -69,7 +69,7 @@ DEFAULTS = {
     "stop": {"rule": None, "eps": 1e-5, "max_iter": "auto", "max_seconds": 0.0, "overlap": 1e-3,
              "kkt": 1e-2, "w_rtol": 1e-4, "w_window": 0.1, "check_every": 50, "watchdog": True,
              "jammed_rtol": 1e-3},
-    "neighbor": {"skin": 0.3, "adaptive_skin": True, "rebalance": 1.2, "max_pair_gib": None},
+    "neighbor": {"skin": "auto", "adaptive_skin": True, "rebalance": 1.2, "max_pair_gib": None},
     "output": {"progress_every": 0.5, "dir": None, "metrics_every": 0, "w_optimum": None,
                "snapshots": True, "snapshot_every": 0, "checkpoint_every": 0},
     "container": {"kind": "none", "lo": None, "hi": None, "centre": None, "radius": None,
@@ -91,6 +91,12 @@ MAX_SCENE_BYTES = 1024 * 1024
 # the Verlet skin, in largest diameters: the rows hold every pair within d + skin, and their
 # cost grows like (1 + skin)^b (neighbor.skin = 1e6 was accepted and 20x slower)
 MAX_SKIN = 2.0
+# neighbor.skin "auto": SKIN_AUTO, and SKIN_AUTO_FIRE_AL_2D as the adaptive skin's ceiling of a
+# 2D fire-al run, whose pass skips the shell's entries cheaply (its rule's constant is larger:
+# ``FireAL.skin_cost``): 2D N = 2000 and 2e4 jammed runs 5 - 12% sooner on 1 and 2 ranks, a
+# certified N = 2000 run 8% (docs/benchmarks.md, "A 2D jammed finish sooner than the quench");
+# a fixed DAHA's pass, which reads every entry, 11% slower with it
+SKIN_AUTO, SKIN_AUTO_FIRE_AL_2D = 0.3, 0.8
 
 
 def _read(source):
@@ -652,6 +658,12 @@ def validate(scene, n_given=True):
     if not isinstance(scene["neighbor"]["adaptive_skin"], bool):
         raise SceneError(f"key 'neighbor.adaptive_skin' must be true or false, "
                          f"got {scene['neighbor']['adaptive_skin']!r}")
+    if scene["neighbor"]["skin"] == "auto":
+        fire_al_2d = scene["dim"] == 2 and m["schedule"] == "fire-al" and scene["neighbor"]["adaptive_skin"]
+        scene["neighbor"]["skin"] = SKIN_AUTO_FIRE_AL_2D if fire_al_2d else SKIN_AUTO
+    elif isinstance(scene["neighbor"]["skin"], str):
+        raise SceneError(f"key 'neighbor.skin' must be a number of largest diameters or \"auto\", "
+                         f"got {scene['neighbor']['skin']!r}")
     if _num(scene, "neighbor.skin") > MAX_SKIN:
         raise SceneError(f"key 'neighbor.skin' is in largest diameters, at most {MAX_SKIN:g} "
                          f"(the pair rows grow like (1 + skin)^dim), got {scene['neighbor']['skin']!r}")

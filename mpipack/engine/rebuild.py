@@ -27,15 +27,16 @@ from mpipack.engine.timers import BALANCE, BORDERS, EXCHANGE, ROWS
 # like s (the entries of the shell d < r < d + s) and the build's cost spread over the
 # (s / 2) / u iterations it lasts at the last period's speed u: s = sqrt(SKIN_COST u d), with
 # SKIN_COST = 2 (build cost per sphere) / (pass cost per sphere per unit of skin), measured
-# (docs/benchmarks.md, "Cheaper rows, an adaptive skin and a shorter quench"); at least
-# SKIN_MIN d, at most neighbor.skin d
+# (docs/benchmarks.md, "Cheaper rows, an adaptive skin and a shorter quench"; the method's
+# ``skin_cost``, SKIN_COST unless it says otherwise); at least SKIN_MIN d, at most
+# neighbor.skin d
 SKIN_COST = 5.0
 SKIN_MIN = 0.05
 
 
-def next_skin(rate, d_max, skin_max):
+def next_skin(rate, d_max, skin_max, cost=SKIN_COST):
     """The skin of the next build, for particles moving by at most ``rate`` an iteration."""
-    return min(skin_max, max(SKIN_MIN * d_max, (SKIN_COST * rate * d_max) ** 0.5))
+    return min(skin_max, max(SKIN_MIN * d_max, (cost * rate * d_max) ** 0.5))
 
 
 def rebuild(s, rebalance=False, hist=None):

@@ -35,6 +35,8 @@ class Method:
     #: with phi <= 0 and lambda = 0 add nothing), so the skin may change from build to build
     #: (``neighbor.adaptive_skin``); NAP/NAV's inner solves linearise every entry: False
     skin_free = True
+    #: the adaptive skin's constant (``engine.rebuild.next_skin``); None: rebuild.SKIN_COST
+    skin_cost = None
 
     #: W is gravity's (``kernels.potential``): the step kernel also sums W / g
     gravity = False

@@ -39,6 +39,12 @@ class FireAL(Method):
                                        scene.method.form, overlap_tol=scene.stop.overlap,
                                        law=scene_law(scene), jammed=scene.stop.rule == "jammed")
         self.kernel = kernels_fire.fire_al_step(scene.method.form, scene.dim)
+        # the adaptive skin's constant (``engine.rebuild.next_skin``): 2 (build cost) / (pass
+        # cost per unit of skin), per sphere. The pass skips a shell entry in a few ns, and a 2D
+        # sphere's shell holds fewer of them per unit of skin than a 3D one's: 25 in 2D (with the
+        # ceiling config.SKIN_AUTO_FIRE_AL_2D: the skin ~0.7 d at the speed cap, rebuilds 2.2x
+        # fewer, 2D N = 2000 and 2e4 jammed runs 5 - 12% sooner), 5 in 1D and 3D
+        self.skin_cost = 25.0 if scene.dim == 2 else 5.0
         self.coeffs = FireALSchedule.NO_STEP
         self._lbfgs_reduction = None
 
