@@ -44,6 +44,24 @@ def test_scene_is_frozen():
     assert (e.n, e.stop.eps, e.stop.max_iter) == (10, 0.0, d.stop.max_iter) and d.n == 2000
 
 
+@pytest.mark.parametrize("sets,skin", [
+    ([], config.SKIN_AUTO_FIRE_AL_2D),                               # 2D fire-al, adaptive
+    (["dim=3"], config.SKIN_AUTO),
+    (["dim=1"], config.SKIN_AUTO),
+    (["neighbor.adaptive_skin=false"], config.SKIN_AUTO),            # a fixed skin stays 0.3
+    (["method.alpha=0.01"], config.SKIN_AUTO),                       # the fixed DAHA
+    (["method.name=nap"], config.SKIN_AUTO),
+    (["neighbor.skin=0.45"], 0.45),                                  # a value is the value
+    (['neighbor.skin="auto"', "dim=3"], config.SKIN_AUTO),
+])
+def test_the_auto_skin_is_wider_only_for_2d_fire_al(sets, skin):
+    """neighbor.skin "auto" resolves to a number in the resolved scene: 0.8 for a 2D run of
+    the fire-al schedule under the adaptive skin, 0.3 otherwise."""
+    s = config.load("default", sets)
+    assert s.neighbor.skin == skin and isinstance(s.neighbor.skin, float)
+    assert config.SKIN_AUTO == 0.3 and config.SKIN_AUTO_FIRE_AL_2D == 0.8
+
+
 def test_overrides_and_seed():
     s = config.load("default", ["n=50", "stop.eps=0", "dim=3", "method.form=NS",
                                 "method.name=aha", "init.kind=lattice",
@@ -104,6 +122,7 @@ BAD = [
     ('stop.max_iter="many"', "stop.max_iter"),
     ("neighbor.skin=0", "neighbor.skin"),
     ("neighbor.skin=1e6", "neighbor.skin"),
+    ('neighbor.skin="wide"', "neighbor.skin"),
     ("stop.overlap=2", "stop.overlap"),
     ("neighbor.rebalance=0.9", "neighbor.rebalance"),
     ("seed=-1", "seed"),
