@@ -158,9 +158,9 @@ QN_DUAL_STEP = {1: 1.0, 2: 0.5, 3: 1.0}
 # and c_b grown at every one (the overlap down to stop.overlap at once, as a two-stage quench
 # raises its stiffness): 3D N = 1e4 seeds 1 - 4 jam after 1900 - 2350 iterations against
 # 8250 - 9250, W 0.1 - 0.3% below LAMMPS's two-stage quench (QUENCH_MAX_INNER 300: 2250 - 2850;
-# 150 and 100 no better). In 2D the schedule already jams in 2300 - 2900 (N = 2000), and a
-# quench did not pay (N = 2000 and 2e4, seeds 1 - 3: about the same iterations, W higher).
-# docs/benchmarks.md, "Jammed finish". 2D quenches too since session 30, from a smaller spread
+# 150 and 100 no better). In 2D, from the sqrt(6) R ball, a quench did not pay (session 28: N =
+# 2000 and 2e4, seeds 1 - 3, about the same iterations, W higher; docs/benchmarks.md, "Jammed
+# finish"). 2D quenches too since session 30, from a smaller spread
 # ball (JAMMED_SPREAD below): N = 2e4 seeds 1 - 4 then jam after 6539 - 7214 iterations against
 # 7283 - 16042 (the first multiplier step waited FIRST_INNER beyond the fall whenever the inner
 # residual missed eta), N = 2000 seeds 5 - 12 after 1803 - 2092 against 2228 - 2502
@@ -170,7 +170,7 @@ QUENCH_WINDOW, QUENCH_SETTLED, QUENCH_MAX_INNER = 100, 1e-3, 200
 # speed cap VMAX was ~3/4 of a 2D jammed run (N = 2000: iterations ~1800 of 2300). In 2D a ball
 # of 2 R (a fourth of the packing's density) falls in ~2/3 of the time and still separates
 # cleanly (N = 2000 seeds 1 - 12: 1719 - 1925 iterations without the quench; 1.8 R and 1.6 R:
-# 3245 and 4301 on one seed each, the crowded ball's explosion flinging pairs). In 3D a 2 R ball
+# 3245 and 4301 on one seed each of 4, not looked into). In 3D a 2 R ball
 # jams 17% sooner but looser, W 0.04 - 0.2% above LAMMPS's quench on 3 seeds of 4 (N = 1e4):
 # kept at SPREAD. docs/benchmarks.md, "A 2D jammed finish sooner than the quench (session 30)"
 JAMMED_SPREAD = {1: SPREAD, 2: 2.0, 3: SPREAD}
