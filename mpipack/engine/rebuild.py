@@ -34,8 +34,10 @@ SKIN_COST = 5.0
 SKIN_MIN = 0.05
 
 
-def next_skin(rate, d_max, skin_max, cost=SKIN_COST):
-    """The skin of the next build, for particles moving by at most ``rate`` an iteration."""
+def next_skin(rate, d_max, skin_max, cost=None):
+    """The skin of the next build, for particles moving by at most ``rate`` an iteration;
+    cost: the method's constant (``Method.skin_cost``), None for SKIN_COST."""
+    cost = SKIN_COST if cost is None else cost
     return min(skin_max, max(SKIN_MIN * d_max, (cost * rate * d_max) ** 0.5))
 
 

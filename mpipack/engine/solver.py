@@ -363,8 +363,8 @@ class Solver:
         """Exchange (and rebalance), sort locals by cell, borders, pair rows (``engine.rebuild``).
         Under an adaptive skin the build takes the skin that suits the last period's speed."""
         if self.adaptive_skin and self.rate is not None:
-            cost = self.method.skin_cost or rebuild_mod.SKIN_COST
-            self.set_skin(rebuild_mod.next_skin(self.rate, self.d_max, self.skin_max, cost))
+            self.set_skin(rebuild_mod.next_skin(self.rate, self.d_max, self.skin_max,
+                                                self.method.skin_cost))
             self.rate = None
         with self.comm.charged_to("rebuild"):
             rebuild_mod.rebuild(self, rebalance, hist)

@@ -43,8 +43,8 @@ class FireAL(Method):
         # cost per unit of skin), per sphere. The pass skips a shell entry in a few ns, and a 2D
         # sphere's shell holds fewer of them per unit of skin than a 3D one's: 25 in 2D (with the
         # ceiling config.SKIN_AUTO_FIRE_AL_2D: the skin ~0.7 d at the speed cap, rebuilds 2.2x
-        # fewer, 2D N = 2000 and 2e4 jammed runs 5 - 12% sooner), 5 in 1D and 3D
-        self.skin_cost = 25.0 if scene.dim == 2 else 5.0
+        # fewer, 2D N = 2000 and 2e4 jammed runs 5 - 12% sooner); rebuild.SKIN_COST in 1D and 3D
+        self.skin_cost = 25.0 if scene.dim == 2 else None
         self.coeffs = FireALSchedule.NO_STEP
         self._lbfgs_reduction = None
 
