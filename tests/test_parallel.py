@@ -329,10 +329,11 @@ def test_out_is_a_file(run_mpipack, tmp_path):
     assert "Traceback" not in proc.stderr
 
 
-@pytest.mark.parametrize("P", [2, 3])
+@pytest.mark.parametrize("P", [1, 2, 3])
 def test_comm_and_partition(tmp_path, P):
-    """Fused reductions (NaN wins, Inf kept, exact int sums), exact sums over ranks, the RCB
-    boxes and the ghost layer: tests/mpi_scripts/comm_checks.py."""
+    """Fused reductions (NaN wins, Inf kept, exact int sums), exact sums over ranks, the packed
+    alltoallv (ragged rows of five dtypes), the RCB boxes and the ghost layer:
+    tests/mpi_scripts/comm_checks.py."""
     proc = mpirun(P, [sys.executable, MPI_SCRIPTS / "comm_checks.py"], cwd=tmp_path)
     assert proc.returncode == 0, describe(proc)
     assert "comm: OK" in proc.stdout, describe(proc)

@@ -51,6 +51,42 @@ def check_reductions(comm):
     assert a.tolist() == [0.0]
 
 
+def check_alltoallv(comm):
+    """Ragged rows of several dtypes and shapes, rank r sending (r + q) % 3 rows of each
+    array to rank q (none to some), every row labelled by (source, destination, row)."""
+    r, P = comm.rank, comm.size
+
+    def rows(src, dst):
+        return (src + dst) % 3
+
+    send, counts = {}, {}
+    for name, kind in (("x", (np.float64, (2,))), ("gid", (np.int64, ())), ("flag", (np.bool_, ())),
+                       ("tag", (np.int32, ())), ("trip", (np.uint8, (3,)))):
+        dtype, shape = kind
+        blocks = []
+        for q in range(P):
+            n = rows(r, q) + (1 if name == "gid" else 0)  # another count per name
+            label = np.array([1000 * r + 10 * q + i for i in range(n)])
+            blocks.append(np.broadcast_to((label % 256 if dtype == np.uint8 else label % 2 == 1 if dtype == np.bool_
+                                           else label).reshape((n,) + (1,) * len(shape)), (n,) + shape).astype(dtype))
+        send[name] = np.concatenate(blocks) if blocks else np.zeros((0,) + shape, dtype)
+        counts[name] = np.array([b.shape[0] for b in blocks], dtype=np.int64)
+    got, rcounts = comm.alltoallv(send, counts)
+    for name, a in send.items():
+        want_counts = [rows(s, r) + (1 if name == "gid" else 0) for s in range(P)]
+        assert rcounts[name].tolist() == want_counts, (name, rcounts[name])
+        labels = np.concatenate([[1000 * s + 10 * r + i for i in range(want_counts[s])] for s in range(P)])
+        b = got[name]
+        assert b.dtype == a.dtype and b.shape == (len(labels),) + a.shape[1:], (name, b.dtype, b.shape)
+        if a.dtype == np.uint8:
+            labels = labels % 256
+        elif a.dtype == np.bool_:
+            labels = labels % 2 == 1
+        width = int(np.prod(a.shape[1:]))
+        want = np.repeat(np.asarray(labels).reshape(-1, 1), width, axis=1).astype(a.dtype)
+        assert np.array_equal(b.reshape(len(labels), width), want), name
+
+
 def check_partition(comm):
     scene = config.load(None, ["n=301", "stop.eps=0"])
     s = Solver(scene, comm)
@@ -84,6 +120,7 @@ def main():
     comm = Comm()
     try:
         check_reductions(comm)
+        check_alltoallv(comm)
         check_partition(comm)
     except BaseException:
         traceback.print_exc()
