@@ -482,3 +482,29 @@ def test_missing_partners_is_the_sorted_set_difference():
         assert got.dtype == np.int64 and np.array_equal(got, want), (span, n_present, n_hist)
     # the dense path is taken for a narrow span, the search for a wide one (both above)
     assert 500 <= neighbors.DENSE_SPAN * 1200 and 10 ** 12 > neighbors.DENSE_SPAN * 1200
+
+
+def test_the_reduction_reads_values_overflow_and_non_finite_maxima():
+    """Reduction.reduce reads the reduced buffers once: exact values by name, NaN where a sum
+    met a NaN (``overflowed``), and whether every maximum is finite (Inf or NaN is not)."""
+    from mpipack.parallel.comm import Comm
+    from mpipack.parallel.reduction import Reduction
+
+    red = Reduction().add_exact("b", [("s", 2)]).add_count("c").add_max("m", [("top", 2)])
+    comm = Comm.serial()
+    for s0, s1, tops, overflowed, finite in [(1.5, -2.25, (0.5, 3.0), False, True),
+                                           (np.nan, 1.0, (0.5, 3.0), True, True),
+                                           (1.0, 1.0, (np.inf, 0.0), False, False),
+                                           (1.0, 1.0, (0.0, np.nan), False, False)]:
+        acc = red.begin().acc("b")
+        exactsum.accumulate(np.array([s0, 0.0]), acc, 0)
+        exactsum.accumulate(np.array([s1]), acc, 1)
+        red.set_count("c", 7)
+        red.maxima("m")[:] = tops
+        red.reduce(comm)
+        assert red.overflowed() is overflowed and red.all_maxima_finite() is finite
+        assert red.count("c") == 7
+        assert np.isnan(red.value("s", 0)) if overflowed else red.value("s", 0) == s0
+        assert red.value("s", 1) == s1 and red.values("s")[1] == s1
+        if finite:
+            assert red.max("top", 1) == 3.0

@@ -23,6 +23,7 @@ collective.
 """
 
 import numpy as np
+from numba import njit
 
 from mpipack.parallel import exactsum
 
@@ -44,6 +45,7 @@ class Reduction:
         self.global_sums = None
         self.global_maxima = None
         self._values = None
+        self._overflowed, self._maxima_finite = False, True
 
     # ---- registration -----------------------------------------------------------------
     def add_exact(self, block, fields):
@@ -123,15 +125,15 @@ class Reduction:
             else:
                 self.maxima(name)[:] = fill()
         self.global_sums, self.global_maxima = comm.reduce_fused(self.sums, self.maxima_buf)
-        self._values = None  # the exact fields' float values, made at the first read
+        n = self._n_exact_rows
+        # every reader needs them (the solver's finiteness check, first): one compiled call
+        self._values, self._overflowed, self._maxima_finite = _read_global(
+            self.global_sums[:n * _ROW].reshape(n, _ROW), self.global_maxima)
         return self
 
     # ---- global side ----------------------------------------------------------------------
     def _all_values(self):
-        """float64 values of every exact row (one compiled call per reduction)."""
-        if self._values is None:
-            n = self._n_exact_rows
-            self._values = exactsum.values_all(self.global_sums[:n * _ROW].reshape(n, _ROW))
+        """float64 values of every exact row (made at the reduction)."""
         return self._values
 
     def value(self, name, row=0):
@@ -148,7 +150,7 @@ class Reduction:
     def overflowed(self):
         """True when some exact sum met a NaN, Inf or a value beyond exactsum.RANGE (its value
         is then NaN: a finite value is never NaN)."""
-        return bool(np.isnan(self._all_values()).any())
+        return self._overflowed
 
     def count(self, name):
         return int(self.global_sums[self._n_exact_rows * _ROW + self._counts[name]])
@@ -158,4 +160,20 @@ class Reduction:
         return float(self.global_maxima[first + row])
 
     def all_maxima_finite(self):
-        return bool(np.all(np.isfinite(self.global_maxima)))
+        return self._maxima_finite
+
+
+@njit(cache=True)
+def _read_global(exact_rows, maxima):
+    """The reduced buffers read once: (values (rows,) of the exact rows, NaN where a rank
+    overflowed; whether any did; whether every maximum is finite)."""
+    values = exactsum.values_all(exact_rows)
+    overflowed = False
+    for v in values:
+        if np.isnan(v):
+            overflowed = True
+    finite = True
+    for m in maxima:
+        if not np.isfinite(m):
+            finite = False
+    return values, overflowed, finite
