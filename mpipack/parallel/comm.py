@@ -161,7 +161,8 @@ def _fused_op_fn(inbuf, outbuf, datatype):
 def _compiled_op():
     """Register ``_fused_op_c`` with the MPI library (MPI_Op_create through ctypes) and wrap its
     handle; None when the library's symbol cannot be found. mpi4py's own ``Op.Create`` calls a
-    Python function per reduction (10 us on 2 ranks against 3 us for a built-in op)."""
+    Python function at every combine, several times the cost of a built-in op
+    (docs/benchmarks.md, session 31)."""
     import ctypes
     import ctypes.util
     create = None
