@@ -114,6 +114,7 @@ def _payload_bytes(obj):
 _INT64_MAX = np.iinfo(np.int64).max
 
 
+@numba.njit(cache=True, nogil=True)
 def _combine(a, b):
     """b <- a (+) b for one or more whole fused buffers laid end to end (int64 arrays)."""
     start = 0
@@ -128,9 +129,6 @@ def _combine(a, b):
         start = first_max + n_max
 
 
-_combine_compiled = numba.njit(cache=True, nogil=True)(_combine)
-
-
 @numba.cfunc(numba.types.void(numba.types.voidptr, numba.types.voidptr,
                               numba.types.CPointer(numba.types.intc), numba.types.voidptr),
              cache=True)
@@ -140,22 +138,13 @@ def _fused_op_c(inbuf, inoutbuf, count, datatype):
     head = numba.carray(inoutbuf, 2, np.int64)
     n = 2 + head[0] + head[1]  # every element of one call has the same layout
     total = n * count[0]
-    _combine_compiled(numba.carray(inbuf, total, np.int64), numba.carray(inoutbuf, total, np.int64))
+    _combine(numba.carray(inbuf, total, np.int64), numba.carray(inoutbuf, total, np.int64))
 
 
 def _fused_op_fn(inbuf, outbuf, datatype):
-    """The same op in Python (mpi4py calls it with buffers): used where the compiled one cannot
-    be registered with the MPI library, and as its reference in the tests."""
-    a = np.frombuffer(inbuf, dtype=np.int64)
-    b = np.frombuffer(outbuf, dtype=np.int64)
-    start = 0
-    while start < b.size:
-        n_sum, n_max = int(b[start]), int(b[start + 1])
-        sums = slice(start + 2, start + 2 + n_sum)
-        maxs = slice(start + 2 + n_sum, start + 2 + n_sum + n_max)
-        b[sums] += a[sums]
-        np.maximum(b[maxs], a[maxs], out=b[maxs])
-        start += 2 + n_sum + n_max
+    """The same combine as a Python op (mpi4py calls it with buffers): used where the compiled
+    op cannot be registered with the MPI library, and as its reference in the tests."""
+    _combine(np.frombuffer(inbuf, dtype=np.int64), np.frombuffer(outbuf, dtype=np.int64))
 
 
 def _compiled_op():

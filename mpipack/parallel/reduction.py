@@ -132,20 +132,16 @@ class Reduction:
         return self
 
     # ---- global side ----------------------------------------------------------------------
-    def _all_values(self):
-        """float64 values of every exact row (made at the reduction)."""
-        return self._values
-
     def value(self, name, row=0):
         """float64 value of an exact field (row ``row``); NaN if any rank overflowed it."""
         first, rows = self._exact[name]
         if not 0 <= row < rows:
             raise IndexError(f"exact field {name!r} has {rows} rows, not row {row}")
-        return float(self._all_values()[first + row])
+        return float(self._values[first + row])
 
     def values(self, name):
         first, rows = self._exact[name]
-        return self._all_values()[first:first + rows].copy()
+        return self._values[first:first + rows].copy()
 
     def overflowed(self):
         """True when some exact sum met a NaN, Inf or a value beyond exactsum.RANGE (its value
