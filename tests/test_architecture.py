@@ -2,6 +2,7 @@
 (top-level and inside functions) against the table of what each layer may import."""
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -10,10 +11,10 @@ PACKAGE = Path(__file__).resolve().parents[1] / "mpipack"
 
 # layer -> the mpipack modules it may import (prefixes); "mpipack.errors" and "mpipack.config"
 # are shared by every layer above the kernels
-SHARED = ("mpipack.errors", "mpipack.config", "mpipack.__version__")
+SHARED = ("mpipack.errors", "mpipack.config", "mpipack.__version__", "mpipack.jit")
 MAY_IMPORT = {
-    "kernels": ("mpipack.kernels", "mpipack.parallel.exactsum"),
-    "parallel": ("mpipack.parallel",),
+    "kernels": ("mpipack.kernels", "mpipack.parallel.exactsum", "mpipack.jit"),
+    "parallel": ("mpipack.parallel", "mpipack.jit"),
     "io": ("mpipack.io", "mpipack.__version__"),
     "methods": ("mpipack.methods", "mpipack.kernels", "mpipack.parallel.reduction",
                 "mpipack.parallel.neighbors", "mpipack.parallel.exactsum") + SHARED,
@@ -32,6 +33,7 @@ MAY_IMPORT = {
     "config": ("mpipack.config", "mpipack.io.start"),  # a start file's rows and diameters at load
     "scenes": (),
     "errors": (),
+    "jit": (),
 }
 # modules that may import mpi4py: the communicator, and parallel HDF5's file access
 MPI_MODULES = {"mpipack.parallel.comm", "mpipack.io._h5"}
@@ -110,3 +112,16 @@ def test_the_checker_sees_a_violation(tmp_path):
             test_imports_follow_the_layers(bad)
     finally:
         bad.unlink()
+
+
+@pytest.mark.parametrize("path", MODULES, ids=lambda p: module_name(p))
+def test_compiled_code_is_cached_through_mpipack_jit(path):
+    """numba's njit and cfunc come from mpipack.jit, whose cache several ranks may fill at once
+    (tests/test_jit_cache.py); a module that took them from numba itself would bypass it."""
+    if module_name(path) == "mpipack.jit":
+        return
+    text = path.read_text()
+    direct = [line for line, target in ((n, t) for t, n in imports(path))
+              if target in ("numba.njit", "numba.jit", "numba.cfunc")]
+    direct += [m.start() for m in re.finditer(r"\bnumba\.(njit|jit|cfunc)\(", text)]
+    assert not direct, f"{module_name(path)} takes njit/cfunc from numba, not mpipack.jit"

@@ -30,7 +30,7 @@ result independent of how particles are distributed over ranks.
 """
 
 import numpy as np
-from numba import njit
+from mpipack.jit import njit
 
 from mpipack.parallel import exactsum
 from mpipack.kernels import metrics

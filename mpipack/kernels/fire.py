@@ -36,7 +36,7 @@ Reduced figures (block "step" of the exact sums, block "step" of the maxima):
 """
 
 import numpy as np
-from numba import njit
+from mpipack.jit import njit
 
 from mpipack.parallel import exactsum
 from mpipack.kernels.daha import NONSMOOTH, SMOOTH, constraint, coordinates, gradient_scale, separation

@@ -28,7 +28,7 @@ passes took 25% longer at 2D N = 20000, so it keeps per-value adds.)
 """
 
 import numpy as np
-from numba import njit
+from mpipack.jit import njit
 
 from mpipack.parallel import exactsum
 

@@ -7,7 +7,7 @@ converged packing, so the union is taken as the sum of the sphere-ball intersect
 
 import math
 
-from numba import njit
+from mpipack.jit import njit
 
 from mpipack.parallel import exactsum
 

@@ -28,7 +28,7 @@ Gershgorin row.
 import math
 
 import numpy as np
-from numba import njit
+from mpipack.jit import njit
 
 PLANE, CYLINDER, SPHERE = 0.0, 1.0, 2.0
 WALL_WIDTH = 8

@@ -27,6 +27,7 @@ import numba
 import numpy as np
 from mpi4py import MPI
 
+from mpipack.jit import cfunc, njit
 from mpipack.parallel import neighbors
 from mpipack.parallel.state import gather_rows
 
@@ -114,7 +115,7 @@ def _payload_bytes(obj):
 _INT64_MAX = np.iinfo(np.int64).max
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def _combine(a, b):
     """b <- a (+) b for one or more whole fused buffers laid end to end (int64 arrays)."""
     start = 0
@@ -129,7 +130,7 @@ def _combine(a, b):
         start = first_max + n_max
 
 
-@numba.cfunc(numba.types.void(numba.types.voidptr, numba.types.voidptr,
+@cfunc(numba.types.void(numba.types.voidptr, numba.types.voidptr,
                               numba.types.CPointer(numba.types.intc), numba.types.voidptr),
              cache=True)
 def _fused_op_c(inbuf, inoutbuf, count, datatype):
@@ -183,7 +184,7 @@ def _fused_op():
     return _FUSED_OP
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _pack(sums, maxima, buf):
     """buf <- [n_sum, n_max, sums, maxima as ordered int64 bits (NaN: INT64_MAX)]."""
     n_sum = sums.size
@@ -195,7 +196,7 @@ def _pack(sums, maxima, buf):
         buf[2 + n_sum + j] = _INT64_MAX if np.isnan(maxima[j]) else bits[j]
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _unpack_maxima(buf, n_sum):
     """The float64 maxima of a reduced buffer (INT64_MAX back to NaN), a new array."""
     bits = buf[2 + n_sum:].copy()

@@ -12,7 +12,7 @@ only the load balance. No physics here.
 """
 
 import numpy as np
-from numba import njit
+from mpipack.jit import njit
 
 _BISECT_STEPS = 60
 

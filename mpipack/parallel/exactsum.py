@@ -26,7 +26,7 @@ overflow flag per quantity. Accumulators from several ranks combine by integer a
 """
 
 import numpy as np
-from numba import njit
+from mpipack.jit import njit
 
 NBINS = 4
 _E0 = 97

@@ -16,7 +16,7 @@ is O(particles) however sparse or spread out the cloud is.
 """
 
 import numpy as np
-from numba import njit
+from mpipack.jit import njit
 
 
 @njit(cache=True)

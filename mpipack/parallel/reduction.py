@@ -23,7 +23,7 @@ collective.
 """
 
 import numpy as np
-from numba import njit
+from mpipack.jit import njit
 
 from mpipack.parallel import exactsum
 

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
-from numba import njit
+from mpipack.jit import njit
 
 
 @dataclass
