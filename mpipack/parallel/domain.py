@@ -14,7 +14,13 @@ only the load balance. No physics here.
 import numpy as np
 from mpipack.jit import njit
 
-_BISECT_STEPS = 60
+# A cut is searched by multisection: each round counts, in ONE allreduce for every node of the
+# level, the particles below _SECTIONS candidate cuts evenly spread over the node's bracket and
+# keeps the section where the count reaches the target. _ROUNDS rounds narrow the bracket by
+# 64^10 = 2^60, as 60 bisection steps did (one allreduce each): the bracket then ends at float
+# resolution, the cut just above the target-th smallest coordinate.
+_SECTIONS = 64
+_ROUNDS = 10
 
 
 class Partition:
@@ -92,6 +98,26 @@ def _count_below(x, n, node_of, axes, cuts):
     return below, total
 
 
+@njit(cache=True)
+def _count_below_each(x, n, node_of, axes, cands):
+    """below[m, j] = number of local particles of node m with x[axis_m] < cands[m, j];
+    cands (n_nodes, S) non-decreasing along each row. Returns (n_nodes, S) int64."""
+    n_nodes, s = cands.shape
+    hist = np.zeros((n_nodes, s + 1), dtype=np.int64)  # hist[m, k]: k candidates <= x
+    for i in range(n):
+        m = node_of[i]
+        if m < 0:
+            continue
+        hist[m, np.searchsorted(cands[m], x[i, axes[m]], side="right")] += 1
+    below = np.zeros((n_nodes, s), dtype=np.int64)
+    for m in range(n_nodes):
+        run = 0
+        for j in range(s):
+            run += hist[m, j]  # x < cands[m, j] <=> fewer than j + 1 candidates <= x
+            below[m, j] = run
+    return below
+
+
 def rcb(comm, x, n):
     """Collective RCB partition of the particles x[:n] of all ranks into comm.size boxes."""
     P = comm.size
@@ -120,17 +146,20 @@ def rcb(comm, x, n):
         _, total = _count_below(x, n, node_of, axes, a_lo)
         total = comm.allreduce(total, op="sum")
         target = np.array([total[m] * (active[m][2] // 2) // active[m][2] for m in range(na)])
-        # bisection on the cut value: smallest cut with count(x < cut) >= target
+        # multisection on the cut value: smallest cut with count(x < cut) >= target, keeping
+        # count(x < c_lo) < target <= count(x < c_hi)
         c_lo = a_lo.copy()
-        c_hi = a_hi.copy()
-        c_hi = np.nextafter(c_hi, np.inf)
-        for _ in range(_BISECT_STEPS):
-            mid = 0.5 * (c_lo + c_hi)
-            below, _ = _count_below(x, n, node_of, axes, mid)
-            below = comm.allreduce(below, op="sum")
-            go_up = below < target
-            c_lo = np.where(go_up, mid, c_lo)
-            c_hi = np.where(go_up, c_hi, mid)
+        c_hi = np.nextafter(a_hi, np.inf)
+        fractions = np.arange(1, _SECTIONS + 1) / _SECTIONS  # exact: a power of two
+        for _ in range(_ROUNDS):
+            # candidates (na, _SECTIONS), non-decreasing along a row, the last = c_hi
+            cands = np.minimum(c_lo[:, None] + (c_hi - c_lo)[:, None] * fractions[None, :], c_hi[:, None])
+            cands[:, -1] = c_hi
+            below = comm.allreduce(_count_below_each(x, n, node_of, axes, cands), op="sum")
+            for m in range(na):
+                j = int(np.searchsorted(below[m], target[m], side="left"))  # first count >= target
+                c_lo[m] = c_lo[m] if j == 0 else cands[m, j - 1]
+                c_hi[m] = cands[m, j]
         cuts = c_hi
         new_active = []
         child_of = np.full((na, 2), -1, dtype=np.int64)
