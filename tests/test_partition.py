@@ -69,3 +69,16 @@ def test_coincident_coordinates_go_to_one_side():
     for r in range(4):
         mine = x[owners == r]
         assert np.all(mine >= part.lo[r]) and np.all(mine < part.hi[r])
+
+
+@pytest.mark.parametrize("P", [2, 3, 4])
+def test_non_finite_coordinates_still_give_a_partition(P):
+    """A diverging cloud (the run then stops with exit 3) may reach a rebuild with most
+    coordinates NaN or infinite: the partition is still made, every finite particle owned."""
+    rng = np.random.default_rng(P)
+    x = rng.normal(0.0, 1.0, (400, 3))
+    x[: 300, 0] = np.nan
+    x[300: 350, 1] = np.inf
+    part = domain.rcb(OneProcessComm(P), x, len(x))
+    owners = part.owners(x, len(x))
+    assert owners.shape == (400,) and np.all((owners[350:] >= 0) & (owners[350:] < P))

@@ -157,7 +157,9 @@ def rcb(comm, x, n):
             cands[:, -1] = c_hi
             below = comm.allreduce(_count_below_each(x, n, node_of, axes, cands), op="sum")
             for m in range(na):
-                j = int(np.searchsorted(below[m], target[m], side="left"))  # first count >= target
+                # the first count >= target; the last section if none is (non-finite coordinates
+                # are below no candidate: the cut then stays at c_hi, as bisection's did)
+                j = min(int(np.searchsorted(below[m], target[m], side="left")), _SECTIONS - 1)
                 c_lo[m] = c_lo[m] if j == 0 else cands[m, j - 1]
                 c_hi[m] = cands[m, j]
         cuts = c_hi
