@@ -39,7 +39,9 @@ def test_a_chain_in_slabs_sends_what_its_topology_says(P, tmp_path):
     two. Per iteration each rank sends one forward message per neighbour, carrying 8 bytes per
     coordinate of the rows that are ghosts elsewhere (so the ranks' bytes add up to 8 x the
     ghosts), and makes one fused allreduce; the lattice stays put, so nothing is rebuilt. The
-    set-up's one ghost exchange sends x, gid and diam: three messages per neighbour."""
+    set-up's one ghost exchange sends its counts, then x, gid and diam: four messages per
+    neighbour and one non-blocking barrier, no alltoall (no message to a rank that is no
+    neighbour)."""
     iters = 20
     row = count(P, tmp_path, "lattice", 1, 300, iters)
     neighbours = sorted(t["forward.p2p"][0] // iters for t in row["totals"])
@@ -49,7 +51,8 @@ def test_a_chain_in_slabs_sends_what_its_topology_says(P, tmp_path):
         assert m % iters == 0 and b % (8 * iters) == 0 and b > 0
         assert t["reduce.allreduce"][0] == iters
         assert set(t) == {"forward.p2p", "reduce.allreduce"}, t  # no rebuild, no check, nothing else
-        assert setup["borders.p2p"][0] == 3 * (m // iters), setup
+        assert setup["borders.p2p"][0] == 4 * (m // iters), setup
+        assert setup["borders.barrier"][0] == 1 and not any(k.endswith(".alltoall") for k in setup), setup
     sent_rows = sum(t["forward.p2p"][1] for t in row["totals"]) // (8 * iters)
     assert sent_rows == sum(row["ghosts_max"]) == round(sum(row["ghosts_mean"])) > 0
     assert max(row["rebuilds"]) == 0 and max(row["far_ghosts"]) == 0

@@ -332,7 +332,7 @@ def test_out_is_a_file(run_mpipack, tmp_path):
 @pytest.mark.parametrize("P", [1, 2, 3])
 def test_comm_and_partition(tmp_path, P):
     """Fused reductions (NaN wins, Inf kept, exact int sums), exact sums over ranks, the packed
-    alltoallv (ragged rows of five dtypes), the RCB boxes and the ghost layer:
+    alltoallv (ragged rows of five dtypes; sparse patterns call after call), the RCB boxes and the ghost layer:
     tests/mpi_scripts/comm_checks.py."""
     proc = mpirun(P, [sys.executable, MPI_SCRIPTS / "comm_checks.py"], cwd=tmp_path)
     assert proc.returncode == 0, describe(proc)

@@ -34,6 +34,7 @@ The model (per iteration, on the slowest rank; all ranks wait for it at the allr
     t_allred   = ceil(log2 K) (L + payload / B) per call (recursive doubling)
     t_alltoall = (K - 1) L + bytes / B per call (pairwise exchange: an upper bound)
     t_allgath  = ceil(log2 K) L + K payload / B per call
+    t_barrier  = ceil(log2 K) L per call (the alltoallv's non-blocking barrier)
     T(K)       = t_comp + t_comm;  speed-up S = T(1) / T(K), efficiency S / K
 
 t0 and c come from ``mpipack bench`` (1 rank: c1 and t0 by a two-point fit over N; 2 ranks:
@@ -41,7 +42,9 @@ c2, the cost per particle-iteration with both cores busy, i.e. the memory bandwi
 gets when every core of a node works: used for K >= 2). Counts beyond K = 32 follow a
 surface-to-volume law fitted to K = 2..32: per-rank ghosts and forward bytes
 a (N/K)^((d-1)/d), messages per rank the largest measured value (a rank's neighbours in an
-RCB partition saturate), the imbalance that of K = 32.
+RCB partition saturate), the imbalance that of K = 32; each kind's latencies grow from the
+largest measured K as its algorithm does (point to point: constant; an alltoall: K - 1; the
+tree collectives and the barrier: log2 K).
 """
 
 import argparse
@@ -236,11 +239,11 @@ def measured_table(rows, case, dim, n):
         red_c, red_b = get("reduce.allreduce")
         its = row["iterations"]
         reb_b = sum(np.array([t.get(f"{c}.{kind}", [0, 0])[1] for t in row["totals"]], float)
-                    for c in REBUILD_CATEGORIES for kind in ("p2p", "alltoall", "allgather", "allreduce"))
+                    for c in REBUILD_CATEGORIES for kind in ("p2p", "alltoall", "allgather", "allreduce", "barrier"))
         reb_m = sum(np.array([t.get(f"{c}.p2p", [0, 0])[0] for t in row["totals"]], float)
                     for c in REBUILD_CATEGORIES)
         reb_coll = sum(np.array([t.get(f"{c}.{kind}", [0, 0])[0] for t in row["totals"]], float)
-                       for c in REBUILD_CATEGORIES for kind in ("alltoall", "allgather", "allreduce"))
+                       for c in REBUILD_CATEGORIES for kind in ("alltoall", "allgather", "allreduce", "barrier"))
         n_reb = max(row["rebuilds"])
         other_c = sum(pi[key][0] for key in pi if key.split(".")[0] in ("check", "other"))
         local = np.array(row["local_mean"])
@@ -278,9 +281,16 @@ def _collective_seconds(kind, calls, payload, k, lat, bw):
     return calls * lg * lat  # barrier
 
 
-def iteration_comm(row, k, lat, bw):
+def _growth(kind):
+    """How a kind's latency grows with K: "const" (point to point: a rank's neighbours
+    saturate), "linear" (an alltoall, K - 1 latencies), "log" (tree collectives)."""
+    return "const" if kind == "p2p" else ("linear" if kind == "alltoall" else "log")
+
+
+def iteration_comm(row, k, lat, bw, growth=None):
     """Seconds of communication per iteration on the slowest rank, by part, from one count row
-    measured at k ranks."""
+    measured at k ranks. ``growth`` ("const", "linear" or "log"): only the kinds whose latency
+    grows that way (``_growth``)."""
     its = row["iterations"]
     parts = {"forward": 0.0, "reductions": 0.0, "rebuild": 0.0}
     per_rank = np.zeros(k)
@@ -288,6 +298,8 @@ def iteration_comm(row, k, lat, bw):
     for r, tot in enumerate(row["totals"]):
         for key, (n, b) in tot.items():
             cat, kind = key.split(".")
+            if growth is not None and _growth(kind) != growth:
+                continue
             if kind == "p2p":
                 sec = n * lat + b / bw
             else:
@@ -360,16 +372,15 @@ def predict(rows, bench, case, dim, n_total, lat, bw, weak=None):
             k_ref = k if k in ks_ref else max(ks_ref)  # the same K at another N, else the largest
             ref = rows[(case, dim, n_ref, k_ref)]
             p_ref = iteration_comm(ref, k_ref, 0.0, bw)  # the bytes' part only, at k_ref
-            l_ref = iteration_comm(ref, k_ref, lat, 1e300)  # the latency part only
             scale = (n / k) ** e / (n_ref / k_ref) ** e
+            lg = math.ceil(math.log2(k)) / math.ceil(math.log2(k_ref))
+            # the latency part, each kind grown from k_ref to k as its algorithm grows
+            grow = {"const": 1.0, "linear": (k - 1) / (k_ref - 1), "log": lg}
+            l_ref = {g: iteration_comm(ref, k_ref, lat, 1e300, growth=g) for g in grow}
             parts = {}
             for p in ("forward", "rebuild"):
-                lat_part = l_ref[p]
-                if p == "rebuild":  # the alltoalls' (K-1) L grows with K
-                    lat_part *= (k - 1) / (k_ref - 1)
-                parts[p] = lat_part + p_ref[p] * scale
-            lg = math.ceil(math.log2(k)) / math.ceil(math.log2(k_ref))
-            parts["reductions"] = l_ref["reductions"] * lg + p_ref["reductions"] * lg
+                parts[p] = sum(l_ref[g][p] * f for g, f in grow.items()) + p_ref[p] * scale
+            parts["reductions"] = sum(l_ref[g]["reductions"] * f for g, f in grow.items()) + p_ref["reductions"] * lg
             imb = max(ref["local_mean"]) / (n_ref / k_ref)
             src = "law"
         out.append({"K": k, "comp": t0 + imb * (n / k) * c2, **parts, "src": src})

@@ -31,6 +31,10 @@ from mpipack.jit import cfunc, njit
 from mpipack.parallel import neighbors
 from mpipack.parallel.state import gather_rows
 
+# point-to-point tags: the ghost refresh (7), alltoallv's counts (two, alternating) and data
+_COUNTS_TAG = 100
+_DATA_TAG = 200
+_ALLTOALLV_CALLS = {}  # MPI communicator handle -> alltoallv calls so far (the counts' tag parity)
 _FUSED_OP = None
 _FUSED_OP_KIND = None  # "compiled" or "python" once made
 
@@ -319,37 +323,79 @@ class Comm:
         ``send_counts[name][r]`` rows to rank r (name-specific counts allow ragged payloads).
         ``category``: what the traffic is charged to while counting (default: the one in force).
 
-        Returns (received arrays, recv_counts per name), rows grouped by source rank.
-        One Alltoall of the counts, then one Alltoallv per array (counted as one message per
-        array and destination rank with rows).
+        Returns (received arrays, recv_counts per name), rows grouped by source rank in rank
+        order. Sparse: a rank exchanges messages only with the ranks it sends rows to or gets
+        rows from (its neighbours in the partition), never with all K - 1 others. Who sends
+        to me is learnt by a non-blocking consensus (``_sparse_counts``: one synchronous send
+        of the counts to each destination, then a non-blocking barrier: log2 K latencies, not
+        the K - 1 of an Alltoall of counts); then one message per array and peer with rows.
         """
         names = list(arrays)
         counts = np.array([send_counts[n] for n in names], dtype=np.int64).T.copy()  # (P, n)
-        recv = np.empty_like(counts)
         if self.counts is not None:
             self._count_alltoallv(arrays, counts, category or self.counts.category)
-        self.mpi.Alltoall(counts, recv)
-        out = {}
-        out_counts = {}
+        recv = self._sparse_counts(counts)
+        me = self.rank
+        srcs = [s for s in np.flatnonzero(recv.any(axis=1)).tolist() if s != me]
+        dsts = [d for d in np.flatnonzero(counts.any(axis=1)).tolist() if d != me]
+        out, out_counts, reqs, sent = {}, {}, [], []
         for q, name in enumerate(names):
             a = np.ascontiguousarray(arrays[name])
-            row = int(np.prod(a.shape[1:])) if a.ndim > 1 else 1
-            sc = counts[:, q] * row
-            rc = recv[:, q] * row
-            sd = np.concatenate(([0], np.cumsum(sc)[:-1]))
-            rd = np.concatenate(([0], np.cumsum(rc)[:-1]))
-            r = np.empty((int(recv[:, q].sum()),) + a.shape[1:], dtype=a.dtype)
-            mt = MPI._typedict[a.dtype.char]
-            self.mpi.Alltoallv([a, (sc, sd), mt], [r, (rc, rd), mt])
+            sent.append(a)  # alive until the sends complete
+            s_off = np.concatenate(([0], np.cumsum(counts[:, q])))
+            r_off = np.concatenate(([0], np.cumsum(recv[:, q])))
+            r = np.empty((int(r_off[-1]),) + a.shape[1:], dtype=a.dtype)
+            r[r_off[me]:r_off[me + 1]] = a[s_off[me]:s_off[me + 1]]
+            tag = _DATA_TAG + q
+            reqs += [self.mpi.Irecv(r[r_off[s]:r_off[s + 1]], source=s, tag=tag) for s in srcs if recv[s, q]]
+            reqs += [self.mpi.Isend(a[s_off[d]:s_off[d + 1]], dest=d, tag=tag) for d in dsts if counts[d, q]]
             out[name] = r
             out_counts[name] = recv[:, q].copy()
+        MPI.Request.Waitall(reqs)
         return out, out_counts
 
+    def _sparse_counts(self, counts):
+        """recv (P, n): recv[s] = rank s's counts row for this rank, from the ranks that have
+        rows for it; zero elsewhere. counts (P, n): this rank's rows for each rank.
+
+        NBX (Hoefler, Siebert and Lumsdaine 2010): a synchronous send of counts[d] to each rank
+        d with rows; receive whatever arrives while probing; once every send of this rank is
+        matched, enter a non-blocking barrier; done when the barrier completes (every rank's
+        sends are then matched, so nothing is still on its way). The tag alternates between
+        calls on one MPI communicator: a rank one call ahead (it cannot be two: the barrier
+        waits for this one) is not taken for this call's sender.
+        """
+        me = self.rank
+        recv = np.zeros_like(counts)
+        recv[me] = counts[me]
+        if self.size == 1:
+            return recv
+        handle = self.mpi.py2f()  # calls are counted per MPI communicator, whatever Comm wraps it
+        calls = _ALLTOALLV_CALLS.get(handle, 0)
+        _ALLTOALLV_CALLS[handle] = calls + 1
+        tag = _COUNTS_TAG + (calls & 1)
+        sends = [self.mpi.Issend(counts[d], dest=d, tag=tag)
+                 for d in np.flatnonzero(counts.any(axis=1)).tolist() if d != me]
+        status = MPI.Status()
+        barrier = None
+        while True:
+            if self.mpi.Iprobe(source=MPI.ANY_SOURCE, tag=tag, status=status):
+                src = status.Get_source()
+                self.mpi.Recv(recv[src], source=src, tag=tag)
+            elif barrier is None:
+                if MPI.Request.Testall(sends):
+                    barrier = self.mpi.Ibarrier()
+            elif barrier.Test():
+                return recv
+
     def _count_alltoallv(self, arrays, counts, category):
-        """Charge an ``alltoallv``: the Alltoall of the (P, names) counts (this rank's row of
-        counts to each other rank), then each array's rows to each other rank."""
+        """Charge an ``alltoallv``: the counts' consensus (one point-to-point message per rank
+        this rank has rows for, and one non-blocking barrier), then each array's rows to each
+        other rank."""
         c, me = self.counts, self.rank
-        c.add(category, ALLTOALL, 1, (self.size - 1) * counts.shape[1] * counts.itemsize)
+        peers = [d for d in np.flatnonzero(counts.any(axis=1)).tolist() if d != me]
+        c.add(category, P2P, len(peers), len(peers) * counts.shape[1] * counts.itemsize)
+        c.add(category, BARRIER, 1, 0)
         for q, name in enumerate(arrays):
             a = arrays[name]
             row_bytes = a.itemsize * (int(np.prod(a.shape[1:])) if a.ndim > 1 else 1)

@@ -3,7 +3,7 @@
     python comm_checks.py
 
 reduce_fused (exact integer sums, maxima with NaN winning and Inf kept), exact sums split over
-ranks, allreduce, and the RCB partition of an initial cloud (balanced, every particle inside
+ranks, allreduce, alltoallv (ragged rows; sparse patterns call after call, ranks out of step), and the RCB partition of an initial cloud (balanced, every particle inside
 its own box, owners() consistent with the boxes). Exit code 0 = all checks passed.
 """
 
@@ -87,6 +87,33 @@ def check_alltoallv(comm):
         assert np.array_equal(b.reshape(len(labels), width), want), name
 
 
+def check_sparse_rounds(comm):
+    """40 alltoallv calls in a row with sparse, changing patterns (most pairs empty; a call where
+    nobody sends; one where only rank 0 does), the ranks out of step (a rank sleeps before some
+    calls, so another may be a call ahead): every rank gets exactly its rows, by source rank."""
+    import time
+
+    r, P = comm.rank, comm.size
+    for call in range(40):
+        rng = np.random.default_rng(call)  # the same pattern on every rank
+        rows = rng.integers(1, 4, (P, P)) * (rng.random((P, P)) < 0.35)
+        if call == 5:
+            rows[:] = 0
+        if call == 6:
+            rows[1:] = 0
+        label = lambda s, q: np.array([100000 * call + 100 * s + 10 * q + i for i in range(rows[s, q])],  # noqa: E731
+                                      dtype=np.int64)
+        send = {"v": np.concatenate([label(r, q) for q in range(P)]),
+                "w": np.concatenate([label(r, q).astype(np.float64).repeat(2).reshape(-1, 2) for q in range(P)])}
+        if (call + r) % 7 == 3:
+            time.sleep(0.01)
+        got, rc = comm.alltoallv(send, {"v": rows[r], "w": rows[r]})
+        want = np.concatenate([label(s, r) for s in range(P)])
+        assert rc["v"].tolist() == rows[:, r].tolist(), (call, rc["v"], rows[:, r])
+        assert np.array_equal(got["v"], want), (call, got["v"], want)
+        assert np.array_equal(got["w"], want.astype(np.float64).repeat(2).reshape(-1, 2)), call
+
+
 def check_partition(comm):
     scene = config.load(None, ["n=301", "stop.eps=0"])
     s = Solver(scene, comm)
@@ -121,6 +148,7 @@ def main():
     try:
         check_reductions(comm)
         check_alltoallv(comm)
+        check_sparse_rounds(comm)
         check_partition(comm)
     except BaseException:
         traceback.print_exc()
