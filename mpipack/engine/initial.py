@@ -8,6 +8,7 @@ seed, gid and a stream number), not from a sequential random stream.
 import math
 
 import numpy as np
+
 from mpipack.jit import njit
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)

@@ -26,6 +26,7 @@ import resource
 import time
 
 import numpy as np
+
 from mpipack.jit import njit
 
 PARAMS = dict(alpha=1e-3, beta=1.0, gamma=1e-3)

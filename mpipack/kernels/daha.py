@@ -30,8 +30,8 @@ result independent of how particles are distributed over ranks.
 """
 
 import numpy as np
-from mpipack.jit import njit
 
+from mpipack.jit import njit
 from mpipack.parallel import exactsum
 from mpipack.kernels import metrics
 from mpipack.kernels import walls as walls_mod

@@ -36,8 +36,8 @@ Reduced figures (block "step" of the exact sums, block "step" of the maxima):
 """
 
 import numpy as np
-from mpipack.jit import njit
 
+from mpipack.jit import njit
 from mpipack.parallel import exactsum
 from mpipack.kernels.daha import NONSMOOTH, SMOOTH, constraint, coordinates, gradient_scale, separation
 from mpipack.kernels import walls as walls_mod

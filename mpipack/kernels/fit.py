@@ -22,8 +22,8 @@ each row sums in partner-gid order: the fit is the same on any number of ranks.
 """
 
 import numpy as np
-from mpipack.jit import njit
 
+from mpipack.jit import njit
 from mpipack.parallel import exactsum
 from mpipack.kernels.daha import (NONSMOOTH, SMOOTH, constraint, coordinates, entry_multiplier, separation,
                                   wall_multiplier)

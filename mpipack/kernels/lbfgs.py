@@ -28,8 +28,8 @@ passes took 25% longer at 2D N = 20000, so it keeps per-value adds.)
 """
 
 import numpy as np
-from mpipack.jit import njit
 
+from mpipack.jit import njit
 from mpipack.parallel import exactsum
 
 # a stored step this close to the cap was shortened to it

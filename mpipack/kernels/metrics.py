@@ -8,7 +8,6 @@ converged packing, so the union is taken as the sum of the sphere-ball intersect
 import math
 
 from mpipack.jit import njit
-
 from mpipack.parallel import exactsum
 
 

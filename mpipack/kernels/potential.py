@@ -12,8 +12,8 @@ m_i (h_i - h_0) (the kernels add it to the row after their own sums).
 """
 
 import numpy as np
-from mpipack.jit import njit
 
+from mpipack.jit import njit
 from mpipack.parallel import exactsum
 
 GRAVITY = 1.0

@@ -28,6 +28,7 @@ Gershgorin row.
 import math
 
 import numpy as np
+
 from mpipack.jit import njit
 
 PLANE, CYLINDER, SPHERE = 0.0, 1.0, 2.0

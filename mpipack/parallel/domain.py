@@ -12,6 +12,7 @@ only the load balance. No physics here.
 """
 
 import numpy as np
+
 from mpipack.jit import njit
 
 # A cut is searched by multisection: each round counts, in ONE allreduce for every node of the

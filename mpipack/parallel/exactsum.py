@@ -26,6 +26,7 @@ overflow flag per quantity. Accumulators from several ranks combine by integer a
 """
 
 import numpy as np
+
 from mpipack.jit import njit
 
 NBINS = 4

@@ -16,6 +16,7 @@ is O(particles) however sparse or spread out the cloud is.
 """
 
 import numpy as np
+
 from mpipack.jit import njit
 
 

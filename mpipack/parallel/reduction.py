@@ -23,8 +23,8 @@ collective.
 """
 
 import numpy as np
-from mpipack.jit import njit
 
+from mpipack.jit import njit
 from mpipack.parallel import exactsum
 
 _ROW = exactsum.NBINS + 1

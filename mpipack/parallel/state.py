@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
+
 from mpipack.jit import njit
 
 
