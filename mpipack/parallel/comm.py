@@ -135,8 +135,8 @@ def _combine(a, b):
 
 
 @cfunc(numba.types.void(numba.types.voidptr, numba.types.voidptr,
-                              numba.types.CPointer(numba.types.intc), numba.types.voidptr),
-             cache=True)
+                        numba.types.CPointer(numba.types.intc), numba.types.voidptr),
+       cache=True)
 def _fused_op_c(inbuf, inoutbuf, count, datatype):
     """MPI_User_function: ``count`` elements of the whole-buffer datatype. Their length is read
     from the header of each (the datatype is not asked: no MPI call from inside the op)."""
