@@ -3,8 +3,9 @@
     python comm_checks.py
 
 reduce_fused (exact integer sums, maxima with NaN winning and Inf kept), exact sums split over
-ranks, allreduce, alltoallv (ragged rows; sparse patterns call after call, ranks out of step), and the RCB partition of an initial cloud (balanced, every particle inside
-its own box, owners() consistent with the boxes). Exit code 0 = all checks passed.
+ranks, allreduce, alltoallv (ragged rows; sparse patterns call after call, ranks out of step),
+and the RCB partition of an initial cloud (balanced, every particle inside its own box,
+owners() consistent with the boxes). Exit code 0 = all checks passed.
 """
 
 import sys
