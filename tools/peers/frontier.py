@@ -87,6 +87,13 @@ def read_lammps_trace(path, ranks, diam):
     return out
 
 
+def failed(what, code, stderr, argv):
+    """A protocol that ended without its result (no JSON, no summary): no states, and why, so
+    that the case goes on with the other codes and the table says "failed"."""
+    print(f"frontier: {what} failed (exit {code}): {stderr[-1500:]}", file=sys.stderr, flush=True)
+    return [], {"failed": f"exit {code}", "stderr_tail": stderr[-1500:], "argv": " ".join(map(str, argv))}
+
+
 def run_lammps(code, start, ranks, workdir, args):
     py = os.path.join(LAMMPS_VENV, "bin", "python")
     trace = os.path.join(workdir, f"trace-{code}.npz")
@@ -103,7 +110,7 @@ def run_lammps(code, start, ranks, workdir, args):
         os.pathsep + env["LD_LIBRARY_PATH"] if env.get("LD_LIBRARY_PATH") else "")
     p = subprocess.run(argv, env=env, capture_output=True, text=True)
     if not os.path.exists(out_json):
-        raise SystemExit(f"frontier: lammps_fire.py {code} failed (exit {p.returncode}): {p.stderr[-1500:]}")
+        return failed(f"lammps_fire.py {code}", p.returncode, p.stderr, argv)
     with open(out_json) as f:
         res = json.load(f)
     d = np.load(start)
@@ -154,7 +161,7 @@ def run_mpipack(code, start, ranks, workdir, args):
     sets += shlex.split(getattr(args, f"{code}_args") or "")
     rc, summary, wall, err = mpipack_side.run_mpipack(meta, ranks, out, None, sets=sets)
     if summary is None:
-        raise SystemExit(f"frontier: mpipack {code} failed (exit {rc}): {err}")
+        return failed(f"mpipack {code}", rc, err, sets)
     npz = os.path.join(workdir, f"snapshots-{code}.npz")
     p = subprocess.run([mpipack_python(), "-c", READ_SNAPSHOTS, os.path.join(out, "snapshots.h5"), npz],
                        env=mpipack_side.mpipack_env(), capture_output=True, text=True)
@@ -204,6 +211,10 @@ def table(result):
              "| code | " + " | ".join(k.replace("<=", " ≤ ") for k in keys) + " | final W/N² | final overlap | final KKT |",
              "|---" * (len(keys) + 4) + "|"]
     for name, c in result["codes"].items():
+        if not c["states"]:
+            lines.append(f"| {LABELS.get(name, name)} | " + " | ".join("failed" for _ in keys)
+                         + f" | failed ({c['info'].get('failed', 'no states')}) | | |")
+            continue
         last = c["states"][-1]
         lines.append(f"| {LABELS.get(name, name)} | " + " | ".join(fmt_s(c["levels"][k]) for k in keys)
                      + f" | {last['W_over_N2']:.6f} | {last['max_overlap']:.1e} | {last['kkt']:.1e} |")

@@ -148,3 +148,23 @@ def test_recorder_records_every_k_steps(tmp_path, protocol):
     np.testing.assert_allclose(recs[0][3], d["x"], atol=1e-12)
     first, last = score.score_state(recs[0][3], 1.0, K=recs[0][2]), score.score_state(recs[-1][3], 1.0, K=recs[-1][2])
     assert last["max_overlap"] < 0.5 * first["max_overlap"]
+
+
+def test_a_failed_protocol_is_a_row_of_the_table_not_the_end_of_the_case(tmp_path, monkeypatch):
+    # lammps_fire.py ending without its JSON (2D N = 2e5, damped MD, 2 ranks: exit 4 and no
+    # result) gives no states and says why; the other codes of the case keep their rows
+    monkeypatch.setattr(frontier.subprocess, "run",
+                        lambda argv, **kw: subprocess.CompletedProcess(argv, 4, "", "rank 0 gone"))
+    args = frontier.argparse.Namespace(trace_every=100, time_limit=10.0, damped_args="")
+    states, info = frontier.run_lammps("damped", str(tmp_path / "start.npz"), 2, str(tmp_path), args)
+    assert states == [] and info["failed"] == "exit 4" and "rank 0 gone" in info["stderr_tail"]
+    result = {"case": {"dim": 2, "n": 6, "ranks": 2, "seed": 1}, "time": "now", "loadavg": (0.5, 0, 0),
+              "codes": {"mpipack": {"info": {}, "states": [dict(s, W_over_N2=s["W"] / 36) for s in _trace()]},
+                        "damped": {"info": info, "states": states}}}
+    frontier.analyse(result)
+    assert result["W_best"] == 100.02
+    assert all(v is None for v in result["codes"]["damped"]["levels"].values())
+    rows = frontier.table(result).splitlines()
+    damped = [r for r in rows if r.startswith("| LAMMPS damped")]
+    assert len(damped) == 1 and "failed (exit 4)" in damped[0]
+    assert any(r.startswith("| mpipack certified") and "| 3.00 |" in r for r in rows)

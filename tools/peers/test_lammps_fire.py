@@ -77,3 +77,16 @@ def test_two_ranks_same_finish(tmp_path):
     assert two["ranks"] == 2 and two["reached"]
     assert two["final"]["max_overlap"] <= 1e-3
     assert two["final"]["W_over_N2"] == pytest.approx(one["final"]["W_over_N2"], rel=2e-2)
+
+
+@pytest.mark.parametrize("ranks", [1, 2])
+def test_damped_checks_residual_from_stored_forces(tmp_path, ranks):
+    """The damped protocol's checks take the KKT residual from the forces LAMMPS stored before
+    the drag (no pair search): the last check's equals score.penalty_kkt_residual of the same
+    (final) state, in id order on any rank count."""
+    start = _start(tmp_path, 300, 2)
+    rc, out = _run([start, "--protocol", "damped", "--max-steps", "600", "--check-every", "200"], ranks=ranks)
+    assert out["steps"] == 600 and not out["reached"], out
+    assert out["checks"][-1]["step"] == 600
+    assert out["checks"][-1]["kkt"] == pytest.approx(out["final_kkt"], rel=1e-9)
+    assert out["final_kkt"] > 1e-3   # a state still moving: the residual is not trivially 0
