@@ -205,8 +205,10 @@ def fmt_s(v):
 def table(result):
     keys = level_keys()
     case = result["case"]
+    wb = result["W_best"]
+    best = f"W_best/N² = {wb / case['n'] ** 2:.6f}" if wb is not None else "no state within 1e-3 d of overlap"
     lines = [f"{case['dim']}D, N = {case['n']}, {case['ranks']} rank(s), seed {case['seed']}; "
-             f"W_best/N² = {result['W_best'] / case['n'] ** 2:.6f}; load average {result['loadavg'][0]:.1f} "
+             f"{best}; load average {result['loadavg'][0]:.1f} "
              f"({result['time']})", "",
              "| code | " + " | ".join(k.replace("<=", " ≤ ") for k in keys) + " | final W/N² | final overlap | final KKT |",
              "|---" * (len(keys) + 4) + "|"]

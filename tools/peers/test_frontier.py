@@ -168,3 +168,15 @@ def test_a_failed_protocol_is_a_row_of_the_table_not_the_end_of_the_case(tmp_pat
     damped = [r for r in rows if r.startswith("| LAMMPS damped")]
     assert len(damped) == 1 and "failed (exit 4)" in damped[0]
     assert any(r.startswith("| mpipack certified") and "| 3.00 |" in r for r in rows)
+
+
+def test_a_case_where_no_code_reaches_the_overlap_has_a_table():
+    # 2D N = 2e5 on 2 ranks: LAMMPS's quench and stiff FIRE ended at overlaps of 0.1 d
+    states = [dict(s, max_overlap=0.1, W_over_N2=1.0) for s in _trace()]
+    result = {"case": {"dim": 2, "n": 6, "ranks": 2, "seed": 1}, "time": "now", "loadavg": (0.5, 0, 0),
+              "codes": {"quench": {"info": {}, "states": states}}}
+    frontier.analyse(result)
+    assert result["W_best"] is None
+    text = frontier.table(result)
+    assert "no state within 1e-3 d of overlap" in text
+    assert "| LAMMPS FIRE two-stage quench | not reached |" in text
