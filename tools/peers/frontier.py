@@ -220,7 +220,31 @@ def table(result):
         last = c["states"][-1]
         lines.append(f"| {LABELS.get(name, name)} | " + " | ".join(fmt_s(c["levels"][k]) for k in keys)
                      + f" | {last['W_over_N2']:.6f} | {last['max_overlap']:.1e} | {last['kkt']:.1e} |")
+    cells = [f"×{v:.2f}" if isinstance(v, float) else v for v in versus(result).values()]
+    lines.append("| mpipack's best ÷ LAMMPS's best | " + " | ".join(cells) + " | | | |")
     return "\n".join(lines)
+
+
+def versus(result):
+    """Per level (``level_keys``): the first time any mpipack code reached it over the first
+    time any LAMMPS protocol did (the issue's target: at most 1/3), or who alone reached it
+    ("mpipack alone", "LAMMPS alone", "neither"). Codes merged by ``--report`` are named
+    "code@tag"."""
+    out = {}
+    for k in level_keys():
+        best = {True: None, False: None}   # is a LAMMPS protocol -> its best seconds
+        for name, c in result["codes"].items():
+            t = c["levels"].get(k)
+            lammps = name.split("@")[0] in LAMMPS_CODES
+            if t is not None and (best[lammps] is None or t < best[lammps]):
+                best[lammps] = t
+        ours, theirs = best[False], best[True]
+        if ours is not None and theirs is not None:
+            out[k] = ours / theirs if theirs > 0 else math.inf
+        else:
+            out[k] = {(True, False): "mpipack alone", (False, True): "LAMMPS alone"}.get(
+                (ours is not None, theirs is not None), "neither")
+    return out
 
 
 def plot(result, png):

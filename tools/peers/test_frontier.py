@@ -180,3 +180,21 @@ def test_a_case_where_no_code_reaches_the_overlap_has_a_table():
     text = frontier.table(result)
     assert "no state within 1e-3 d of overlap" in text
     assert "| LAMMPS FIRE two-stage quench | not reached |" in text
+
+
+def test_versus_is_mpipack_best_over_lammps_best_per_level():
+    # a LAMMPS protocol reaching the coarse levels at 1 s, two mpipack codes at 3 and 5 s
+    def trace(t, w, kkt):
+        return [{"seconds": t, "max_overlap": 5e-4, "W": w, "kkt": kkt, "W_over_N2": w / 36}]
+    result = {"case": {"dim": 2, "n": 6, "ranks": 1, "seed": 1}, "time": "now", "loadavg": (0.5, 0, 0),
+              "codes": {"stiff@a": {"info": {}, "states": trace(1.0, 105.0, 0.5)},
+                        "jammed@a": {"info": {}, "states": trace(5.0, 100.5, 0.05)},
+                        "mpipack@b": {"info": {}, "states": trace(3.0, 100.0, 0.2)}}}
+    frontier.analyse(result)
+    v = frontier.versus(result)
+    assert v["W<=0.1"] == pytest.approx(3.0) and v["W<=0.03"] == "mpipack alone"
+    assert v["KKT<=0.1"] == "mpipack alone" and v["KKT<=0.01"] == "neither"
+    result["codes"]["stiff@a"]["states"] = []    # a failed protocol reaches nothing
+    frontier.analyse(result)
+    assert frontier.versus(result)["W<=0.1"] == "mpipack alone"
+    assert "| mpipack's best ÷ LAMMPS's best | mpipack alone |" in frontier.table(result)
