@@ -275,6 +275,24 @@ def plot(result, png):
             color = line.get_color()
     ax.set_xticks(range(len(keys)))
     ax.set_xticklabels([k.replace("<=", "≤") for k in keys], rotation=30)
+    if not any(v is not None for c in result["codes"].values() for v in c["levels"].values()):
+        # no code reached any level (2D N = 2e5 within 600 s): how close each came instead
+        ax.clear()
+        for name, c in result["codes"].items():
+            pts = [(st["seconds"], st["max_overlap"]) for st in c["states"] if st["max_overlap"] > 0]
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", ms=3, label=LABELS.get(name, name))
+        ax.axhline(score.FRONTIER_OVERLAP, color="grey", lw=0.8)
+        ax.set_yscale("log")
+        ax.set_xlabel("wall seconds")
+        ax.set_ylabel("max overlap / d (log); every level asks 1e-3")
+        case = result["case"]
+        ax.set_title(f"{case['dim']}D N = {case['n']}, {case['ranks']} rank(s): no code reached a level; "
+                     f"max overlap against time (load {result['loadavg'][0]:.0f})", fontsize=9)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(png, dpi=110)
+        return
     ax.set_yscale("log")
     ax.set_ylabel("wall seconds to first reach (log)")
     ax.axvline(nw - 0.5, color="grey", lw=0.8)

@@ -198,3 +198,14 @@ def test_versus_is_mpipack_best_over_lammps_best_per_level():
     frontier.analyse(result)
     assert frontier.versus(result)["W<=0.1"] == "mpipack alone"
     assert "| mpipack's best ÷ LAMMPS's best | mpipack alone |" in frontier.table(result)
+
+
+def test_the_figure_of_a_case_where_no_code_reached_a_level_shows_the_overlaps(tmp_path):
+    pytest.importorskip("matplotlib")
+    states = [dict(s, max_overlap=0.1 / (1 + s["seconds"]), W_over_N2=1.0) for s in _trace()]
+    result = {"case": {"dim": 2, "n": 6, "ranks": 2, "seed": 1}, "time": "now", "loadavg": (0.5, 0, 0),
+              "codes": {"quench": {"info": {}, "states": states}, "damped": {"info": {}, "states": []}}}
+    frontier.analyse(result)
+    png = tmp_path / "empty.png"
+    frontier.plot(result, str(png))   # log-scaled seconds of no point at all raised here
+    assert png.stat().st_size > 1000
