@@ -263,21 +263,8 @@ def plot(result, png):
     keys = level_keys()
     fig, ax = plt.subplots(figsize=(8, 4.5))
     nw = len(score.W_LEVELS)
-    for name, c in result["codes"].items():
-        ys = [c["levels"][k] for k in keys]
-        color = None
-        for group in (range(nw), range(nw, len(keys))):   # W levels, KKT levels: two lines
-            xs = [i for i in group if ys[i] is not None]
-            if not xs and color is not None:
-                continue
-            line, = ax.plot(xs, [ys[i] for i in xs], marker="o", color=color,
-                            label=LABELS.get(name, name) if color is None else None)
-            color = line.get_color()
-    ax.set_xticks(range(len(keys)))
-    ax.set_xticklabels([k.replace("<=", "≤") for k in keys], rotation=30)
     if not any(v is not None for c in result["codes"].values() for v in c["levels"].values()):
         # no code reached any level (2D N = 2e5 within 600 s): how close each came instead
-        ax.clear()
         for name, c in result["codes"].items():
             pts = [(st["seconds"], st["max_overlap"]) for st in c["states"] if st["max_overlap"] > 0]
             ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", ms=3, label=LABELS.get(name, name))
@@ -293,6 +280,18 @@ def plot(result, png):
         fig.tight_layout()
         fig.savefig(png, dpi=110)
         return
+    for name, c in result["codes"].items():
+        ys = [c["levels"][k] for k in keys]
+        color = None
+        for group in (range(nw), range(nw, len(keys))):   # W levels, KKT levels: two lines
+            xs = [i for i in group if ys[i] is not None]
+            if not xs and color is not None:
+                continue
+            line, = ax.plot(xs, [ys[i] for i in xs], marker="o", color=color,
+                            label=LABELS.get(name, name) if color is None else None)
+            color = line.get_color()
+    ax.set_xticks(range(len(keys)))
+    ax.set_xticklabels([k.replace("<=", "≤") for k in keys], rotation=30)
     ax.set_yscale("log")
     ax.set_ylabel("wall seconds to first reach (log)")
     ax.axvline(nw - 0.5, color="grey", lw=0.8)
