@@ -263,47 +263,41 @@ def plot(result, png):
     keys = level_keys()
     fig, ax = plt.subplots(figsize=(8, 4.5))
     nw = len(score.W_LEVELS)
+    case = result["case"]
+    where = f"{case['dim']}D N = {case['n']}, {case['ranks']} rank(s)"
     if not any(v is not None for c in result["codes"].values() for v in c["levels"].values()):
         # no code reached any level (2D N = 2e5 within 600 s): how close each came instead
         for name, c in result["codes"].items():
             pts = [(st["seconds"], st["max_overlap"]) for st in c["states"] if st["max_overlap"] > 0]
             ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", ms=3, label=LABELS.get(name, name))
         ax.axhline(score.FRONTIER_OVERLAP, color="grey", lw=0.8)
-        ax.set_yscale("log")
         ax.set_xlabel("wall seconds")
         ax.set_ylabel("max overlap / d (log); every level asks 1e-3")
-        case = result["case"]
-        ax.set_title(f"{case['dim']}D N = {case['n']}, {case['ranks']} rank(s): no code reached a level; "
-                     f"max overlap against time (load {result['loadavg'][0]:.0f})", fontsize=9)
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8)
-        fig.tight_layout()
-        fig.savefig(png, dpi=110)
-        return
-    for name, c in result["codes"].items():
-        ys = [c["levels"][k] for k in keys]
-        color = None
-        for group in (range(nw), range(nw, len(keys))):   # W levels, KKT levels: two lines
-            xs = [i for i in group if ys[i] is not None]
-            if not xs and color is not None:
-                continue
-            line, = ax.plot(xs, [ys[i] for i in xs], marker="o", color=color,
-                            label=LABELS.get(name, name) if color is None else None)
-            color = line.get_color()
-    ax.set_xticks(range(len(keys)))
-    ax.set_xticklabels([k.replace("<=", "≤") for k in keys], rotation=30)
+        title = f"{where}: no code reached a level; max overlap against time (load {result['loadavg'][0]:.0f})"
+    else:
+        for name, c in result["codes"].items():
+            ys = [c["levels"][k] for k in keys]
+            color = None
+            for group in (range(nw), range(nw, len(keys))):   # W levels, KKT levels: two lines
+                xs = [i for i in group if ys[i] is not None]
+                if not xs and color is not None:
+                    continue
+                line, = ax.plot(xs, [ys[i] for i in xs], marker="o", color=color,
+                                label=LABELS.get(name, name) if color is None else None)
+                color = line.get_color()
+        ax.set_xticks(range(len(keys)))
+        ax.set_xticklabels([k.replace("<=", "≤") for k in keys], rotation=30)
+        ax.set_ylabel("wall seconds to first reach (log)")
+        ax.axvline(nw - 0.5, color="grey", lw=0.8)
+        ax.set_xlabel("level (a missing point: not reached)")
+        title = (f"{where}: time to each level "
+                 f"(overlap ≤ 1e-3 d for all; shared machine, load {result['loadavg'][0]:.0f})")
     ax.set_yscale("log")
-    ax.set_ylabel("wall seconds to first reach (log)")
-    ax.axvline(nw - 0.5, color="grey", lw=0.8)
-    ax.set_xlabel("level (a missing point: not reached)")
-    case = result["case"]
-    ax.set_title(f"{case['dim']}D N = {case['n']}, {case['ranks']} rank(s): time to each level "
-                 f"(overlap ≤ 1e-3 d for all; shared machine, load {result['loadavg'][0]:.0f})", fontsize=9)
+    ax.set_title(title, fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(png, dpi=110)
-
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
