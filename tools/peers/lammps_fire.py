@@ -489,13 +489,6 @@ def final_grad_w_estimate(n, dim, d=1.0):
     return math.sqrt(n * dim / (dim + 2.0)) * R
 
 
-def net_force_residual(force, grad_w):
-    """||F|| / ||grad W|| (F, grad W: (N, b)); score.penalty_kkt_residual's ratio."""
-    gw_norm = math.sqrt(float((grad_w * grad_w).sum()))
-    f_norm = math.sqrt(float((force * force).sum()))
-    return f_norm / gw_norm if gw_norm > 0 else (0.0 if f_norm == 0 else math.inf)
-
-
 def run_single_stage(sim, args, x0, diam, K, log):
     """The single-stage protocols at the final K (k_estimate for --overlap-target), until the
     net force ||F|| <= --kkt-stop ||grad W|| (the KKT residual with the penalty forces as
@@ -558,7 +551,7 @@ def run_single_stage(sim, args, x0, diam, K, log):
             grad_w = x - x.mean(axis=0)
             w = 0.5 * float((grad_w * grad_w).sum())
             fig = {"W": w, "W_over_N2": w / float(sim.n) ** 2, "max_overlap": math.nan}
-            kkt = net_force_residual(sim.stored_forces(), grad_w)
+            kkt = score.net_force_residual(sim.stored_forces(), grad_w)
         gw = math.sqrt(2.0 * fig["W"])
         checks.append({"step": steps, "seconds": wall, "max_overlap": fig["max_overlap"],
                        "W_over_N2": fig["W_over_N2"], "kkt": kkt})

@@ -204,8 +204,14 @@ def penalty_kkt_residual(x, diam, K):
         fij = (mag / np.where(r > 0, r, 1.0))[:, None] * v      # on i, away from j
         np.add.at(F, i, fij)
         np.add.at(F, j, -fij)
-    gw_norm = math.sqrt(float((gw * gw).sum()))
-    f_norm = math.sqrt(float((F * F).sum()))
+    return net_force_residual(F, gw)
+
+
+def net_force_residual(force, grad_w):
+    """||F|| / ||grad W|| (F, grad W: (N, b)): 0 for no force and no pull, inf for a force
+    without a pull."""
+    gw_norm = math.sqrt(float((grad_w * grad_w).sum()))
+    f_norm = math.sqrt(float((force * force).sum()))
     return f_norm / gw_norm if gw_norm > 0 else (0.0 if f_norm == 0 else math.inf)
 
 
