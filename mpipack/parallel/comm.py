@@ -336,8 +336,7 @@ class Comm:
             self._count_alltoallv(arrays, counts, category or self.counts.category)
         recv = self._sparse_counts(counts)
         me = self.rank
-        srcs = [s for s in np.flatnonzero(recv.any(axis=1)).tolist() if s != me]
-        dsts = [d for d in np.flatnonzero(counts.any(axis=1)).tolist() if d != me]
+        srcs, dsts = _other_ranks_with_rows(recv, me), _other_ranks_with_rows(counts, me)
         out, out_counts, reqs, sent = {}, {}, [], []
         for q, name in enumerate(names):
             a = np.ascontiguousarray(arrays[name])
@@ -374,8 +373,7 @@ class Comm:
         calls = _ALLTOALLV_CALLS.get(handle, 0)
         _ALLTOALLV_CALLS[handle] = calls + 1
         tag = _COUNTS_TAG + (calls & 1)
-        sends = [self.mpi.Issend(counts[d], dest=d, tag=tag)
-                 for d in np.flatnonzero(counts.any(axis=1)).tolist() if d != me]
+        sends = [self.mpi.Issend(counts[d], dest=d, tag=tag) for d in _other_ranks_with_rows(counts, me)]
         status = MPI.Status()
         barrier = None
         while True:
@@ -393,7 +391,7 @@ class Comm:
         this rank has rows for, and one non-blocking barrier), then each array's rows to each
         other rank."""
         c, me = self.counts, self.rank
-        peers = [d for d in np.flatnonzero(counts.any(axis=1)).tolist() if d != me]
+        peers = _other_ranks_with_rows(counts, me)
         c.add(category, P2P, len(peers), len(peers) * counts.shape[1] * counts.itemsize)
         c.add(category, BARRIER, 1, 0)
         for q, name in enumerate(arrays):
@@ -402,6 +400,12 @@ class Comm:
             rows = counts[:, q]
             peers = int(np.count_nonzero(rows)) - (1 if rows[me] > 0 else 0)
             c.add(category, P2P, peers, (int(rows.sum()) - int(rows[me])) * row_bytes)
+
+
+def _other_ranks_with_rows(counts, me):
+    """The ranks r != me whose row of counts (P, n: rows per rank and array) is not all zero,
+    in rank order: the peers an ``alltoallv`` exchanges messages with."""
+    return [r for r in np.flatnonzero(counts.any(axis=1)).tolist() if r != me]
 
 
 class GhostPlan:
