@@ -299,6 +299,7 @@ def plot(result, png):
     fig.tight_layout()
     fig.savefig(png, dpi=110)
 
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--dim", type=int, default=3)
