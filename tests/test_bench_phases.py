@@ -77,7 +77,8 @@ def test_a_dual_step_of_gain_zero_changes_no_bit(dim, form):
     x, diam = random_cloud(rng, n, dim)
     x_prev = x + 0.05 * rng.normal(size=x.shape)
     lam_full = random_lambda(rng, form, x, diam)
-    offsets, pair_j = rows_complete(n, n, rng.permutation(n).astype(np.int64))
+    gid = rng.permutation(n).astype(np.int64)
+    offsets, pair_j = rows_complete(n, n, gid)
     owner = np.repeat(np.arange(n), np.diff(offsets))
     lam0 = lam_full[owner, pair_j].copy()
     xbar = x.mean(axis=0)
@@ -89,8 +90,9 @@ def test_a_dual_step_of_gain_zero_changes_no_bit(dim, form):
             x_new = np.full_like(x, np.nan)
             acc = exactsum.new_accumulator(dim + kernels_fire.N_ACC)
             maxima = np.zeros(kernels_fire.N_MAX)
-            active = kern(x, x_prev, x_new, n, diam, offsets, pair_j, lam, *no_walls(n), xbar, CENTRE, 1.2, -0.2, 0.02, 0.08,
-                          0.0, 0.7, True, weighted, 0.05, update, acc, maxima)
+            pairs = kernels_fire.pair_work(n, gid, offsets, pair_j, lam, max_row=math.inf)
+            active = kern(x, x_prev, x_new, n, diam, offsets, pair_j, lam, pairs, *no_walls(n), xbar, CENTRE, 1.2, -0.2,
+                          0.02, 0.08, 0.0, 0.7, True, weighted, 0.05, update, acc, maxima)
             out.append((x_new, lam, acc, maxima, active))
     # the old arithmetic of the dual step with beta = 0, in numpy: max(0, lam + 0 * w * phi)
     assert np.array_equal(np.maximum(0.0, lam0 + 0.0 * lam0), lam0)

@@ -64,10 +64,16 @@ CASES = {
 }
 
 
+def half_list(n_local, gid, offsets, pair_j, lam):
+    """The pass's half list whatever the rows' length (these tests' rows are complete)."""
+    return kernels_fire.pair_work(n_local, gid, offsets, pair_j, lam, max_row=math.inf)
+
+
+@pytest.mark.parametrize("walk", ["half list", "whole rows"])
 @pytest.mark.parametrize("case", list(CASES))
 @pytest.mark.parametrize("form", ["S", "NS"])
 @pytest.mark.parametrize("dim", [1, 2, 3])
-def test_fire_kernel_matches_reference(dim, form, case):
+def test_fire_kernel_matches_reference(dim, form, case, walk):
     p = CASES[case]
     rng = np.random.default_rng(zlib.crc32(f"fire-{dim}-{form}-{case}".encode()))
     n = 30
@@ -86,7 +92,10 @@ def test_fire_kernel_matches_reference(dim, form, case):
     acc = exactsum.new_accumulator(dim + kernels_fire.N_ACC)
     maxima = np.zeros(kernels_fire.N_MAX)
     kern = kernels_fire.fire_al_step(form, dim)
-    n_active = kern(x, x_prev, x_new, n, diam, offsets, pair_j, pair_lambda, *no_walls(n), xbar, CENTRE, p["a1"], p["a2"],
+    pairs = half_list(n, gid, offsets, pair_j, pair_lambda) if walk == "half list" else kernels_fire.WHOLE_ROWS
+    assert (pairs[0].size > 0) == (walk == "half list")
+    n_active = kern(x, x_prev, x_new, n, diam, offsets, pair_j, pair_lambda, pairs, *no_walls(n), xbar, CENTRE,
+                    p["a1"], p["a2"],
                     p["a3"], p["a4"], p["beta"], p["floor"], p["clip"], p["weighted"], p["vmax"],
                     True, acc, maxima)
     assert np.allclose(x_new, x_ref, rtol=1e-11, atol=1e-12), np.abs(x_new - x_ref).max()
@@ -130,7 +139,8 @@ def test_daha_mode_is_the_paper_kernel(form):
                                                     a1, a2, a3, a4, 1.3, True, acc, mx)
         else:
             acc, mx = exactsum.new_accumulator(dim + kernels_fire.N_ACC), np.zeros(kernels_fire.N_MAX)
-            kernels_fire.fire_al_step(form, dim)(x, x_prev, x_new, n, diam, offsets, pair_j, lam,
+            pairs = half_list(n, np.arange(n, dtype=np.int64), offsets, pair_j, lam)
+            kernels_fire.fire_al_step(form, dim)(x, x_prev, x_new, n, diam, offsets, pair_j, lam, pairs,
                                                  *no_walls(n), xbar, CENTRE,
                                                  a1, a2, a3, a4, 1.3, 0.0, False, False, 0.0, True, acc, mx)
         out[name] = (x_new, lam)
@@ -152,7 +162,9 @@ def test_kkt_point_is_a_fixed_point():
         lam = np.full(2, lam_star)
         x_new = np.empty_like(x)
         acc, mx = exactsum.new_accumulator(2 + kernels_fire.N_ACC), np.zeros(kernels_fire.N_MAX)
-        kernels_fire.fire_al_step("S", 2)(x, x, x_new, 2, diam, offsets, pair_j, lam, *no_walls(2), xbar, CENTRE,
+        pairs = half_list(2, np.arange(2, dtype=np.int64), offsets, pair_j, lam)
+        kernels_fire.fire_al_step("S", 2)(x, x, x_new, 2, diam, offsets, pair_j, lam, pairs, *no_walls(2), xbar,
+                                          CENTRE,
                                           p["a1"], p["a2"],
                                           p["a3"], p["a4"], p["beta"], p["floor"], p["clip"], p["weighted"],
                                           p["vmax"], True, acc, mx)
@@ -187,3 +199,96 @@ def test_radial_equalisation_makes_a_uniform_ball(dim):
     # uniform in the ball: the fraction within q R is q^b
     for q in (0.3, 0.6, 0.9):
         assert abs((r1 <= q * radius).mean() - q ** dim) < 0.02, (q, (r1 <= q * radius).mean())
+
+
+def _every_entry_alone(n_local, offsets, pair_j):
+    """The ``pairs`` of a pass that computes every row entry on its own (no mirrors): the
+    arithmetic of a pass over the whole of both rows of each pair."""
+    n_pairs = int(offsets[n_local])
+    return (offsets[:n_local + 1].copy(), np.arange(n_pairs, dtype=np.int64), pair_j[:n_pairs].copy(),
+            np.full(n_pairs, -1, dtype=np.int64), np.empty((n_pairs, kernels_fire.N_TERMS)))
+
+
+@pytest.mark.parametrize("n_local", [30, 17])
+def test_pair_halves_list_every_pair_once(n_local):
+    """Every row entry is in the half list or is the mirror of one that is, never both; a
+    mirror is the partner's entry of the same pair, both ways; ghost partners, and a pair whose
+    two entries hold different lambdas, are listed from each side with no mirror."""
+    rng = np.random.default_rng(11 + n_local)
+    n = 30
+    gid = rng.permutation(n).astype(np.int64)
+    offsets, pair_j = rows_complete(n_local, n, gid)
+    owner = np.repeat(np.arange(n_local), np.diff(offsets))
+    lam_full = rng.uniform(size=(n, n))
+    lam_full = np.triu(lam_full, 1) + np.triu(lam_full, 1).T
+    lam = lam_full[owner, pair_j].copy()
+    odd = int(np.flatnonzero((pair_j < n_local) & (pair_j > owner))[3])  # one asymmetric pair
+    lam[odd] *= 1.5
+    half_offsets, half_e, half_j, half_f, _ = half_list(n_local, gid, offsets, pair_j, lam)
+    assert np.array_equal(half_j, pair_j[half_e]) and np.all(np.diff(half_e) > 0)
+    assert np.array_equal(np.repeat(np.arange(n_local), np.diff(half_offsets)), owner[half_e])
+    covered = np.zeros(offsets[n_local], dtype=int)
+    covered[half_e] += 1
+    covered[half_f[half_f >= 0]] += 1
+    assert np.all(covered == 1)
+    for e, f in zip(half_e, half_f):
+        i, j = owner[e], pair_j[e]
+        if f >= 0:
+            assert owner[f] == j and pair_j[f] == i and j > i
+        else:
+            assert j >= n_local or e == odd or (i == pair_j[odd] and j == owner[odd])
+    n_pairs_local = int(np.count_nonzero(pair_j < n_local))
+    n_ghost = int(offsets[n_local]) - n_pairs_local
+    assert half_e.size == n_pairs_local // 2 + 1 + n_ghost  # the odd pair from both sides
+
+
+@pytest.mark.parametrize("case", list(CASES))
+@pytest.mark.parametrize("form", ["S", "NS"])
+@pytest.mark.parametrize("dim", [2, 3])
+def test_each_pair_once_gives_the_bits_of_both_rows(dim, form, case):
+    """The pass over the half list (each pair's terms once, written to both entries) leaves the
+    same bits, in X^{n+1}, lambda, the exact sums and the maxima, as a pass that computes every
+    entry of both rows, through the terms buffer or walking the whole rows (``WHOLE_ROWS``, a
+    dense start's); with ghosts (the first 17 of 30 spheres local) and without."""
+    p = CASES[case]
+    rng = np.random.default_rng(zlib.crc32(f"half-{dim}-{form}-{case}".encode()))
+    n = 30
+    x, diam = random_cloud(rng, n, dim)
+    diam = diam * rng.uniform(0.8, 1.2, size=n)
+    x_prev = x + 0.05 * rng.normal(size=x.shape)
+    lam_full = random_lambda(rng, form, x, diam)
+    gid = rng.permutation(n).astype(np.int64)
+    xbar = x.mean(axis=0)
+    kern = kernels_fire.fire_al_step(form, dim)
+    for n_local in (n, 17):
+        offsets, pair_j = rows_complete(n_local, n, gid)
+        owner = np.repeat(np.arange(n_local), np.diff(offsets))
+        lam0 = lam_full[owner, pair_j].copy()
+        out = []
+        for pairs in (half_list(n_local, gid, offsets, pair_j, lam0), _every_entry_alone(n_local, offsets, pair_j),
+                      kernels_fire.WHOLE_ROWS):
+            lam = lam0.copy()
+            x_new = np.full_like(x, np.nan)
+            acc = exactsum.new_accumulator(dim + kernels_fire.N_ACC)
+            maxima = np.zeros(kernels_fire.N_MAX)
+            active = kern(x, x_prev, x_new, n_local, diam, offsets, pair_j, lam, pairs, *no_walls(n_local), xbar,
+                          CENTRE, p["a1"], p["a2"], p["a3"], p["a4"], p["beta"], p["floor"], p["clip"],
+                          p["weighted"], p["vmax"], True, acc, maxima)
+            out.append((x_new[:n_local], lam, acc, maxima, active))
+        assert out[0][1].size > 0 and np.count_nonzero(out[0][1]) > 0
+        for other in out[1:]:
+            for a, b in zip(out[0], other):
+                assert np.array_equal(a, b), (n_local, a, b)
+
+
+def test_dense_rows_get_no_half_list():
+    """Rows of more than HALF_LIST_MAX_ROW entries a sphere (a dense start's first pass) are
+    walked whole: no half list, whose memory would outgrow the rows' own guard."""
+    n = kernels_fire.HALF_LIST_MAX_ROW + 2
+    gid = np.arange(n, dtype=np.int64)
+    offsets, pair_j = rows_complete(n, n, gid)  # n - 1 > HALF_LIST_MAX_ROW entries a sphere
+    lam = np.zeros(offsets[n])
+    assert kernels_fire.pair_work(n, gid, offsets, pair_j, lam) is kernels_fire.WHOLE_ROWS
+    offsets, pair_j = rows_complete(n - 4, n - 4, gid)
+    work = kernels_fire.pair_work(n - 4, gid, offsets, pair_j, lam[:offsets[n - 4]])
+    assert work[0].shape == (n - 3,) and work[4].shape == (offsets[n - 4], kernels_fire.N_TERMS)

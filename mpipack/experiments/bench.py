@@ -47,7 +47,7 @@ def _state_bytes(solver):
     """Bytes held by the rank's particle arrays and pair store (what the RSS figure should be)."""
     st = solver.state
     arrays = (st.x, st.x_prev, st.x_new, st.gid, st.diam, st.x_build, st.pair_offsets, st.pair_j,
-              st.pair_lambda)
+              st.pair_lambda) + (st.pair_work or ())
     return sum(a.nbytes for a in arrays)
 
 
@@ -169,7 +169,7 @@ calls long enough to take about ``target`` seconds):
     dual          fire - fire_nodual: what the dual step costs inside the pass (it is fused)
     fire_nosums   the fire pass without its exact sums but |X^n|^2 (all_sums False)
     exact_sums    fire - fire_nosums: what the pass's exact (binned) sums cost
-    fire_norows   the fire pass over empty pair rows (every offset 0): the per-sphere part
+    fire_norows   the fire pass over empty pair rows (every offset 0, no half list): the per-sphere part
     pair_loop     fire - fire_norows: the pair rows' part of the pass
     alm           the multiplier (ALM) step: one pass with the penalty off, beta = c_b
     grad          L-BFGS's gradient pass (the kernel, all_sums False, the stiff phase's
@@ -198,7 +198,10 @@ taken to come from cache, so these are the least traffic, STREAM's convention: a
 counted once):
 
     fire, alm, grad   sphere 24 b + 16  (x, x_prev, x_new written, d_i, offset)
-                      entry  20 (pair_j, lambda read and written); fire_nodual 12
+                      entry  74: the half list's entries (half of them: entry, partner and
+                      mirror 20, lambda read 8 and written to both entries 16, the three
+                      terms written to both 48), then every entry's pair_j and terms read
+                      (28); fire_nodual and grad (no dual step) 66
     dots              sphere 8 b (2 + K), K = 2m + 1 memory slots (x, x_new, every slot)
     direction         sphere 8 b 17 (x, x_new, 11 slots read; 3 slots and x_new written)
     metrics           sphere 8 b + 44 (x, d, gid, offset; pressure, contacts, |g_i| written)
@@ -294,9 +297,9 @@ def traffic_bytes(dim, m):
     """(bytes per sphere, bytes per pair entry, bytes per contact row) of each phase (PHASES_DOC)."""
     k = 2 * m + 1
     return {
-        "fire": (24 * dim + 16, 20, 0), "fire_nodual": (24 * dim + 16, 12, 0),
-        "fire_nosums": (24 * dim + 16, 20, 0), "fire_norows": (24 * dim + 16, 0, 0),
-        "alm": (24 * dim + 16, 20, 0), "grad": (24 * dim + 16, 20, 0),
+        "fire": (24 * dim + 16, 74, 0), "fire_nodual": (24 * dim + 16, 66, 0),
+        "fire_nosums": (24 * dim + 16, 74, 0), "fire_norows": (24 * dim + 16, 0, 0),
+        "alm": (24 * dim + 16, 74, 0), "grad": (24 * dim + 16, 66, 0),
         "dots": (8 * dim * (2 + k), 0, 0), "direction": (8 * dim * 17, 0, 0),
         "metrics": (8 * dim + 44, 12, 0), "fit_step": (32 * dim + 16, 0, 72),
     }
@@ -352,10 +355,13 @@ def phases_case(comm, dim, n, run_iters=None, repeats=5, target=0.3, fit_steps=5
         "grad": Coefficients(1.0, 0.0, 1.0, cb, 0.0, sched.lam_floor, True, True, 0.0),
     }
 
+    from mpipack.kernels import fire as kernels_fire
+    pairs = [kernels_fire.pair_work(nl, st.gid, st.pair_offsets, st.pair_j, st.pair_lambda)]
+
     def kernel_call(c, update, all_sums):
         def call():
             red.begin()
-            kern(st.x, st.x_prev, st.x_new, nl, st.diam, st.pair_offsets, st.pair_j, st.pair_lambda, st.walls,
+            kern(st.x, st.x_prev, st.x_new, nl, st.diam, st.pair_offsets, st.pair_j, st.pair_lambda, pairs[0], st.walls,
                  st.wall_lambda, solver.xbar, solver.pot, *c, update, red.acc("step"), red.maxima("step"), all_sums)
         return call
 
@@ -363,12 +369,12 @@ def phases_case(comm, dim, n, run_iters=None, repeats=5, target=0.3, fit_steps=5
     sec["fire"] = time_it(kernel_call(coeffs["fire"], True, True))
     sec["fire_nodual"] = time_it(kernel_call(coeffs["fire"], False, True))
     sec["fire_nosums"] = time_it(kernel_call(coeffs["fire"], True, False))
-    offsets = st.pair_offsets
-    st.pair_offsets = np.zeros_like(offsets)
+    offsets, work = st.pair_offsets, pairs[0]
+    st.pair_offsets, pairs[0] = np.zeros_like(offsets), kernels_fire.WHOLE_ROWS
     try:
         sec["fire_norows"] = time_it(kernel_call(coeffs["fire"], True, True))
     finally:
-        st.pair_offsets = offsets
+        st.pair_offsets, pairs[0] = offsets, work
     sec["alm"] = time_it(kernel_call(coeffs["alm"], True, True))
     st.pair_lambda[:] = lam0
     sec["grad"] = time_it(kernel_call(coeffs["grad"], True, False))

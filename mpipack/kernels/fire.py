@@ -26,6 +26,13 @@ form sets a1 = 1 + a, a2 = -a (velocity mixing) and a3 = b (step times step).
 At a KKT point phi lam = 0 and phi <= 0, so m = a3 lam, G = -a3 grad L = 0 and D = 0 whatever
 the floor, the clip and the cap are: the fixed points are the KKT points.
 
+A pass has two halves. The first computes the terms of each pair once (over the rows' half
+list: a pair of two local spheres appears in both rows) and writes them to both of its entries;
+the second sums each sphere's row of terms in the row's partner-gid order, as a pass over the
+whole rows would, so the bits do not depend on the partition (nor on the half list), and each
+pair's arithmetic (its constraint, the dual step, the division by d_ij^p, the branches) is done
+once instead of twice (``mpipack bench --phases``: docs/benchmarks.md).
+
 Reduced figures (block "step" of the exact sums, block "step" of the maxima):
     exact   sum X^{n+1} (b rows), sum |X^{n+1}-X^n|^2, sum |X^n|^2, power sum G.V (V = X^n -
             X^{n-1}), sum |G|^2
@@ -86,60 +93,148 @@ def _term(lam, phi, phin, g2, hess, unit, a3, a4, beta, lam_floor, clip, weighte
         m = a3 * lam + a4 * w * phi
     else:
         m = 0.0
-    gain = g2 if (lam > 0.0 or phi > 0.0) else 0.0
-    row = a4 * w * g2 * unit + abs(m) * hess if m != 0.0 else 0.0
+    # selects, not jumps (both sides computed): in a packing whether a pair's lambda or phi
+    # is positive is a coin toss
+    gain = g2 if (lam > 0.0) | (phi > 0.0) else 0.0
+    row_m = a4 * w * g2 * unit + abs(m) * hess
+    row = row_m if m != 0.0 else 0.0
     return lam, m, gain, row
 
 
+# columns of the pair terms' buffer (``pairs``' terms): one row per row entry
+TERM_FORCE, TERM_GAIN, TERM_ROW = 0, 1, 2
+N_TERMS = 3
+
+
 @njit(cache=True, inline="always")
-def _pair_row(form, dim, x, xi0, xi1, xi2, di, e0, e1, pair_j, diam, pair_lambda, a3, a4, beta,
-              lam_floor, clip, weighted_dual, update_lambda, min_ratio2):
-    """One sphere's pair row of a pass (see the module docstring): (F_i as three scalars, the
-    row's dual gain, its Gershgorin sum, its entries with lambda > 0, min_ratio2 updated).
-    Inlined with literal flags where the pass calls it, so that LLVM folds their branches."""
+def _pair(form, dim, x, xi0, xi1, xi2, di, j, diam, lam0, a3, a4, beta, lam_floor, clip, weighted_dual,
+          update_lambda):
+    """One pair's part of a pass (see the module docstring), from X_i (scalars), d_i, partner
+    j and lambda: (X_i - X_j as three scalars, lambda after the dual step, the force factor g
+    with m grad_i phi_ij = -g (X_i - X_j), the row's dual gain and Gershgorin shares, phi, the
+    squared distance, d_ij^2). A function of the pair alone: from the partner's side only the
+    separation's sign differs."""
+    d0, d1, d2, r2 = separation(dim, x, xi0, xi1, xi2, j)
+    dij = 0.5 * (di + diam[j])
+    phi, r = constraint(form, dij, r2)
+    # |grad_i phi|^2 and the curvature of phi along the pair (the Gershgorin row)
+    if form == SMOOTH:
+        g2 = 4.0 * r2
+        hess = 2.0
+    else:
+        g2 = 1.0
+        hess = 1.0 / r if r > 0.0 else 0.0
+    # the penalty's phi in units of the pair's diameter (clip form): phi / d_ij^p
+    dd = dij * dij
+    unit = 1.0
+    if clip:
+        unit = 1.0 / dd if form == SMOOTH else 1.0 / dij
+    # no branch for an entry of the skin's shell (phi <= 0, lambda = 0: whether a pair
+    # overlaps is a coin toss in a packing): its dual step leaves lambda at 0, and its force,
+    # gain and row are exact zeros
+    lam, m, gain, row = _term(lam0, phi, phi * unit, g2, hess, unit, a3, a4, beta, lam_floor, clip,
+                              weighted_dual, update_lambda)
+    return d0, d1, d2, lam, gradient_scale(form, m, r), gain, row, phi, r2, dd
+
+
+@njit(cache=True, inline="always")
+def _min_ratio(phi, r2, dd, min_ratio2):
+    """min(min_ratio2, r2 / dd) over overlapping pairs (phi > 0): an exact minimum whatever the
+    order of the pairs; the division only where the ratio may be below it (the test's margin
+    covers its rounding)."""
+    if (phi > 0.0) & (r2 <= min_ratio2 * dd * (1.0 + 1e-12)):
+        ratio2 = r2 / dd
+        if ratio2 < min_ratio2:
+            return ratio2
+    return min_ratio2
+
+
+@njit(cache=True, inline="always")
+def _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e, half_j, half_f, terms, a3, a4,
+                beta, lam_floor, clip, weighted_dual, update_lambda):
+    """The first half of a pass over the half list (``pair_halves``): every pair's part once,
+    written to the pair's entry and to its mirror (its entry in the partner's row): lambda,
+    and in ``terms`` g, the gain's and the row's shares. Both entries get the bits that a walk
+    of both whole rows would give them. Returns (entries with lambda > 0, the min ratio of
+    ``_min_ratio``). Inlined with literal flags where the pass calls it, so that LLVM folds
+    their branches."""
+    n_active = 0
+    min_ratio2 = 1.0
+    for i in range(n_local):
+        xi0, xi1, xi2 = coordinates(dim, x, i)
+        di = diam[i]
+        # unsigned indices: numba wraps a signed index around (x[-1]) with a test and the
+        # array's shape, reloaded from the stack for every entry in this register-starved loop
+        for k in range(np.uint64(half_offsets[i]), np.uint64(half_offsets[i + 1])):
+            e = np.uint64(half_e[k])
+            f = half_f[k]
+            _, _, _, lam, g, gain, row, phi, r2, dd = _pair(
+                form, dim, x, xi0, xi1, xi2, di, np.uint64(half_j[k]), diam, pair_lambda[e], a3, a4, beta,
+                lam_floor, clip, weighted_dual, update_lambda)
+            min_ratio2 = _min_ratio(phi, r2, dd, min_ratio2)
+            both = 1 if f < 0 else 2
+            n_active += both if lam > 0.0 else 0
+            if update_lambda:
+                pair_lambda[e] = lam
+            terms[e, TERM_FORCE] = g
+            terms[e, TERM_GAIN] = gain
+            terms[e, TERM_ROW] = row
+            if f >= 0:
+                fu = np.uint64(f)
+                if update_lambda:
+                    pair_lambda[fu] = lam
+                terms[fu, TERM_FORCE] = g
+                terms[fu, TERM_GAIN] = gain
+                terms[fu, TERM_ROW] = row
+    return n_active, min_ratio2
+
+
+@njit(cache=True, inline="always")
+def _row_sums(dim, x, xi0, xi1, xi2, e0, e1, pair_j, terms):
+    """The second half of a pass, for one sphere: its row's pair terms summed in the row's
+    (partner-gid) order, F_i = -sum_j g (X_i - X_j), the dual gain and the Gershgorin sum; as
+    (F_i as three scalars, gain, row)."""
+    f0 = 0.0
+    f1 = 0.0
+    f2 = 0.0
+    gain = 0.0
+    row = 0.0
+    for e in range(np.uint64(e0), np.uint64(e1)):
+        d0, d1, d2, r2 = separation(dim, x, xi0, xi1, xi2, np.uint64(pair_j[e]))
+        # a zero term adds exact zeros (the force is never -0.0: it starts at +0.0 and
+        # x - x = +0.0)
+        g = terms[e, TERM_FORCE]
+        gain += terms[e, TERM_GAIN]
+        row += terms[e, TERM_ROW]
+        f0 -= g * d0
+        f1 -= g * d1
+        f2 -= g * d2
+    return f0, f1, f2, gain, row
+
+
+@njit(cache=True, inline="always")
+def _whole_row(form, dim, x, xi0, xi1, xi2, di, e0, e1, pair_j, diam, pair_lambda, a3, a4, beta, lam_floor,
+               clip, weighted_dual, update_lambda, min_ratio2):
+    """A pass's walk of one sphere's whole row, each pair's part computed here (the rows of a
+    dense start, too many entries for a half list's memory: ``HALF_LIST_MAX_ROW``): the same
+    bits as the two halves. Returns (F_i as three scalars, gain, row, entries with lambda > 0,
+    min_ratio2)."""
     f0 = 0.0
     f1 = 0.0
     f2 = 0.0
     gain = 0.0
     row = 0.0
     n_active = 0
-    # unsigned indices: numba wraps a signed index around (x[-1]) with a test and the
-    # array's shape, reloaded from the stack for every entry in this register-starved loop
     for e in range(np.uint64(e0), np.uint64(e1)):
-        j = np.uint64(pair_j[e])
-        d0, d1, d2, r2 = separation(dim, x, xi0, xi1, xi2, j)
-        dij = 0.5 * (di + diam[j])
-        phi, r = constraint(form, dij, r2)
-        lam0 = pair_lambda[e]
-        if phi <= 0.0 and lam0 == 0.0:
-            # an entry of the skin's shell: no dual step moves its lambda from 0 (its
-            # phi <= 0), no force (m = max(0, a4 w phi~) = 0, or lam = 0 without the clip),
-            # no gain and no overlap: it adds nothing (the same bits as the terms below)
-            continue
-        # |grad_i phi|^2 and the curvature of phi along the pair (the Gershgorin row)
-        if form == SMOOTH:
-            g2 = 4.0 * r2
-            hess = 2.0
-        else:
-            g2 = 1.0
-            hess = 1.0 / r if r > 0.0 else 0.0
-        # the penalty's phi in units of the pair's diameter (clip form): phi / d_ij^p
-        unit = 1.0
-        if clip:
-            unit = 1.0 / (dij * dij) if form == SMOOTH else 1.0 / dij
-        lam, m, gain_i, row_i = _term(lam0, phi, phi * unit, g2, hess, unit, a3, a4, beta,
-                                      lam_floor, clip, weighted_dual, update_lambda)
+        d0, d1, d2, lam, g, gain_e, row_e, phi, r2, dd = _pair(
+            form, dim, x, xi0, xi1, xi2, di, np.uint64(pair_j[e]), diam, pair_lambda[e], a3, a4, beta,
+            lam_floor, clip, weighted_dual, update_lambda)
+        min_ratio2 = _min_ratio(phi, r2, dd, min_ratio2)
+        n_active += 1 if lam > 0.0 else 0
         if update_lambda:
             pair_lambda[e] = lam
-        # branch-free from here (selects, not jumps: whether a pair overlaps is a coin
-        # toss in a packing); m = 0 adds exact zeros to the row and the force (which is
-        # never -0.0: it starts at +0.0 and x - x = +0.0)
-        if (phi > 0.0) & (r2 < min_ratio2 * (dij * dij)):
-            min_ratio2 = r2 / (dij * dij)
-        gain += gain_i
-        n_active += 1 if lam > 0.0 else 0
-        row += row_i
-        g = gradient_scale(form, m, r)  # m grad_i phi = -g (X_i - X_j)
+        gain += gain_e
+        row += row_e
         f0 -= g * d0
         f1 -= g * d1
         f2 -= g * d2
@@ -148,8 +243,8 @@ def _pair_row(form, dim, x, xi0, xi1, xi2, di, e0, e1, pair_j, diam, pair_lambda
 
 @njit(cache=True, inline="always")
 def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda,
-                  walls, wall_lambda, xbar, pot, a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual,
-                  vmax, update_lambda, acc, maxima, all_sums):
+                  pairs, walls, wall_lambda, xbar, pot, a1, a2, a3, a4, beta, lam_floor, clip,
+                  weighted_dual, vmax, update_lambda, acc, maxima, all_sums):
     # form and dim are compile-time constants of each wrapper below: LLVM removes the dead
     # branches and keeps the coordinates in scalars (with small arrays indexed by a runtime
     # range(dim) loop the pass took 8 - 10% longer, 3D N = 2000 and 2D N = 8000 states)
@@ -163,30 +258,39 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
     xb1 = xbar[1] if dim > 1 else 0.0
     xb2 = xbar[2] if dim > 2 else 0.0
     max_step2 = 0.0
-    min_ratio2 = 1.0
     wall_overlap = 0.0
     max_gain = 0.0
     max_row = 0.0
+    # first every pair's part once (the half list), then every sphere's row sums and update;
+    # or, without a half list, each sphere's whole row. The flags as literals in the two passes
+    # of the fire phase (FIRE's with its dual step, and without: L-BFGS's gradient, FIRE's once
+    # c_b has grown): their branches folded
+    half_offsets, half_e, half_j, half_f, terms = pairs
+    halves = half_offsets.shape[0] > 0
     n_active = 0
+    min_ratio2 = 1.0
+    if halves:
+        if clip and weighted_dual and update_lambda:
+            n_active, min_ratio2 = _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e,
+                                               half_j, half_f, terms, a3, a4, beta, lam_floor, True, True, True)
+        elif clip and weighted_dual:
+            n_active, min_ratio2 = _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e,
+                                               half_j, half_f, terms, a3, a4, beta, lam_floor, True, True, False)
+        else:
+            n_active, min_ratio2 = _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e,
+                                               half_j, half_f, terms, a3, a4, beta, lam_floor, clip, weighted_dual,
+                                               update_lambda)
     for i in range(n_local):
         xi0, xi1, xi2 = coordinates(dim, x, i)
         di = diam[i]
         e0, e1 = pair_offsets[i], pair_offsets[i + 1]
-        # the flags as literals in the two passes of the fire phase (FIRE's with its dual step,
-        # and without: L-BFGS's gradient, FIRE's once c_b has grown): their branches folded
-        if clip and weighted_dual and update_lambda:
-            f0, f1, f2, gain, row, n_row, min_ratio2 = _pair_row(
-                form, dim, x, xi0, xi1, xi2, di, e0, e1, pair_j, diam, pair_lambda, a3, a4, beta,
-                lam_floor, True, True, True, min_ratio2)
-        elif clip and weighted_dual:
-            f0, f1, f2, gain, row, n_row, min_ratio2 = _pair_row(
-                form, dim, x, xi0, xi1, xi2, di, e0, e1, pair_j, diam, pair_lambda, a3, a4, beta,
-                lam_floor, True, True, False, min_ratio2)
+        if halves:
+            f0, f1, f2, gain, row = _row_sums(dim, x, xi0, xi1, xi2, e0, e1, pair_j, terms)
         else:
-            f0, f1, f2, gain, row, n_row, min_ratio2 = _pair_row(
-                form, dim, x, xi0, xi1, xi2, di, e0, e1, pair_j, diam, pair_lambda, a3, a4, beta,
-                lam_floor, clip, weighted_dual, update_lambda, min_ratio2)
-        n_active += n_row
+            f0, f1, f2, gain, row, n_row, min_ratio2 = _whole_row(
+                form, dim, x, xi0, xi1, xi2, di, e0, e1, pair_j, diam, pair_lambda, a3, a4, beta, lam_floor,
+                clip, weighted_dual, update_lambda, min_ratio2)
+            n_active += n_row
         # the container's walls (``kernels.walls``), each term as a pair's with the sphere's
         # own diameter as size: phi = c (d_i/2 - s), |grad phi|^2 = c^2, |Hess phi| = c / rho
         for wall in range(walls.shape[0]):
@@ -276,7 +380,7 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
 
 _DOC = """One pass of the fire-al step for one form and dimension; see the module docstring.
 
-    Arguments: (x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda, walls,
+    Arguments: (x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda, pairs, walls,
     wall_lambda (``kernels.walls``; shape (0, 8) and (n_local, 0) without a container), xbar, pot
     (``kernels.potential``: grad W is X - xbar, or the weights under gravity, whose W / g is then
     summed into row b + ACC_WPOT of acc, in every pass),
@@ -284,45 +388,123 @@ _DOC = """One pass of the fire-al step for one form and dimension; see the modul
     all_sums=True); all_sums False: of the exact sums only |X^n|^2 (an L-BFGS gradient pass).
     Shapes as ``kernels.multipliers_and_step``; acc int64 (b+N_ACC, exactsum.NBINS+1), added to;
     maxima float64 (N_MAX,), overwritten. Returns the number of row entries with lambda > 0.
+    pairs: (half_offsets, half_e, half_j, half_f, terms), the rows' half list and a terms buffer
+    (n_pairs, N_TERMS), made with the rows (``pair_work``), or ``WHOLE_ROWS``.
     """
 
 
 # error_model "numpy": no zero-division checks in the pair loop (every divisor is a diameter
 # or a guarded distance); the results are the same bits
 @njit(cache=True, error_model="numpy")
-def fire_s1(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(SMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_s1(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(SMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_s2(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(SMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_s2(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(SMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_s3(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(SMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_s3(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(SMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns1(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(NONSMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_ns1(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(NONSMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns2(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(NONSMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_ns2(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(NONSMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns3(x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(NONSMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_ns3(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
+    return _fire_al_step(NONSMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
 
 
 _STEPS = {("S", 1): fire_s1, ("S", 2): fire_s2, ("S", 3): fire_s3,
           ("NS", 1): fire_ns1, ("NS", 2): fire_ns2, ("NS", 3): fire_ns3}
 for _f in _STEPS.values():
     _f.__doc__ = _DOC
+
+
+@njit(cache=True)
+def pair_halves(n_local, gid, pair_offsets, pair_j, pair_lambda):
+    """Each pair of two local spheres once: the half list of the rows, for a pass that computes
+    a pair's terms once and writes them to both of its entries (``_pair_terms``).
+
+    Returns (half_offsets int64 (n_local+1,), half_e int64, half_j int32, half_f int64, each
+    (n_half,)): row i's listed entries are half_e[half_offsets[i]:half_offsets[i+1]] (in row
+    order), with their partners half_j and their mirrors half_f (the entry of the partner's
+    row whose partner is i), or -1. An entry is listed unless it is the mirror of one that is:
+    of an entry pair (e of row i, f of row j) the one with i < j is listed, with mirror f; an
+    entry whose partner is a ghost, or whose mirror is missing or holds another lambda (the
+    pair's two entries must hold the same bits: every pass then keeps them so), is listed with
+    mirror -1. Rows are in partner-gid order, so a mirror is found by bisection on the
+    partners' gids.
+    """
+    n_pairs = pair_offsets[n_local]
+    mirror = np.full(n_pairs, -1, dtype=np.int64)
+    for i in range(n_local):
+        gi = gid[i]
+        for e in range(pair_offsets[i], pair_offsets[i + 1]):
+            j = pair_j[e]
+            if j >= n_local or j < i:
+                continue
+            lo = pair_offsets[j]
+            hi = pair_offsets[j + 1]
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if gid[pair_j[mid]] < gi:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            if lo < pair_offsets[j + 1] and pair_j[lo] == i and pair_lambda[lo] == pair_lambda[e]:
+                mirror[e] = lo
+                mirror[lo] = e
+    half_offsets = np.zeros(n_local + 1, dtype=np.int64)
+    for i in range(n_local):
+        listed = 0
+        for e in range(pair_offsets[i], pair_offsets[i + 1]):
+            if mirror[e] < 0 or pair_j[e] > i:
+                listed += 1
+        half_offsets[i + 1] = half_offsets[i] + listed
+    n_half = half_offsets[n_local]
+    half_e = np.empty(n_half, dtype=np.int64)
+    half_j = np.empty(n_half, dtype=np.int32)
+    half_f = np.empty(n_half, dtype=np.int64)
+    k = 0
+    for i in range(n_local):
+        for e in range(pair_offsets[i], pair_offsets[i + 1]):
+            if mirror[e] < 0 or pair_j[e] > i:
+                half_e[k] = e
+                half_j[k] = pair_j[e]
+                half_f[k] = mirror[e]
+                k += 1
+    return half_offsets, half_e, half_j, half_f
+
+
+# the pass walks whole rows, with no half list, when the rows hold more entries than this per
+# sphere (a dense start's first pass: hundreds a sphere; a run's rows hold about 6 in 2D, 8 - 11
+# in 3D): the half list's 44 bytes an entry would then outgrow the rows' own memory guard
+HALF_LIST_MAX_ROW = 24
+
+# the ``pairs`` of a pass that walks whole rows (no half list)
+WHOLE_ROWS = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int32),
+              np.zeros(0, dtype=np.int64), np.zeros((0, N_TERMS)))
+
+
+def pair_work(n_local, gid, pair_offsets, pair_j, pair_lambda, max_row=HALF_LIST_MAX_ROW):
+    """The ``pairs`` argument of a pass over these rows: (half_offsets, half_e, half_j, half_f)
+    of ``pair_halves`` and a terms buffer (n_pairs, N_TERMS); ``WHOLE_ROWS`` when the rows
+    hold more than ``max_row`` entries a sphere."""
+    if pair_offsets[n_local] > max_row * n_local:
+        return WHOLE_ROWS
+    halves = pair_halves(n_local, gid, pair_offsets, pair_j, pair_lambda)
+    return halves + (np.empty((int(pair_offsets[n_local]), N_TERMS)),)
 
 
 def fire_al_step(form, dim):

@@ -62,8 +62,15 @@ class FireAL(Method):
         n_local = st.n_local if n_local is None else n_local
         # the fire phase updates lambda every pass (its dual steps); the explosion is DAHA
         update = self.schedule.phase == Phase.FIRE or not st.lambda_fresh
+        if n_local == 0:
+            pairs = kernels_fire.WHOLE_ROWS
+        else:
+            if st.pair_work is None:  # the rows were built again
+                st.pair_work = kernels_fire.pair_work(st.n_local, st.gid, st.pair_offsets, st.pair_j,
+                                                      st.pair_lambda)
+            pairs = st.pair_work
         return self.kernel(st.x, x_other, st.x_new, n_local, st.diam, st.pair_offsets, st.pair_j,
-                           st.pair_lambda, st.walls, st.wall_lambda, xbar, solver.pot, *self.coeffs, update,
+                           st.pair_lambda, pairs, st.walls, st.wall_lambda, xbar, solver.pot, *self.coeffs, update,
                            red.acc("step"),
                            red.maxima("step"), all_sums)
 

@@ -10,6 +10,9 @@ Shapes (n_total = n_local + n_ghost, b = dim):
     x_build  (n_local, b)  local positions when the pair rows were last built
     pair_offsets (n_local+1,), pair_j int32 (n_pairs,), pair_lambda (n_pairs,):
                            the pair store, one row per local particle, partners in gid order
+    pair_work              the fire-al pass's half list of the rows and its terms buffer
+                           (``kernels.fire.pair_work``), made by the method when it needs it;
+                           None after every build of the rows
 
     x_lin    (n_total, b)  NAP/NAV only: the outer iterate X^p the constraints are linearised
                            about (ghost rows too); None for DAHA/AHA
@@ -99,6 +102,7 @@ class State:
         self.pair_offsets = np.zeros(1, dtype=np.int64)
         self.pair_j = np.zeros(0, dtype=np.int32)
         self.pair_lambda = np.zeros(0)
+        self.pair_work = None
         self.x_lin = None  # linearisation point X^p of the nested methods (n_total, b)
         self.qn = None  # the L-BFGS memory (n_local, 2m+1, b), once the schedule uses it
         self.walls = np.zeros((0, 8))  # the container's walls (``kernels.walls``)
