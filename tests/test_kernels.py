@@ -263,10 +263,12 @@ def test_exact_sum_partial_accumulators_combine_exactly():
         assert exactsum.value(total, 0) == whole
 
 
-def test_exact_sum_lanes_match_per_value_adds():
-    """``add_lanes`` (one value per quantity at a time, vectorised) leaves the same accumulator,
-    bit for bit, as per-value ``add`` calls: over more than FLUSH_EVERY calls, with values of
-    every magnitude, zeros, and out-of-range values and NaN in some quantities only."""
+def test_exact_sum_columns_match_per_value_adds():
+    """``columns`` (values put item by item, cut and summed a block of items at a time down
+    each quantity's column, the sums reassociated) leaves the same accumulator, bit for bit, as
+    per-value ``add`` calls: over more than FLUSH_EVERY items and a last partial block, with
+    values of every magnitude, zeros, -0.0, out-of-range values and NaN in some quantities
+    only, and quantities put for some items only (zeros for the others)."""
     from numba import njit
 
     @njit
@@ -274,37 +276,48 @@ def test_exact_sum_lanes_match_per_value_adds():
         fbuf = exactsum.staging(acc)
         for i in range(vals.shape[0]):
             for q in range(vals.shape[1]):
-                exactsum.add(fbuf, acc, q, vals[i, q])
+                if q != 9 or vals[i, 0] > 0.0:
+                    exactsum.add(fbuf, acc, q, vals[i, q])
         exactsum.flush(fbuf, acc)
 
     @njit
-    def by_lanes(vals, acc):
-        fl = exactsum.lanes(acc)
+    def by_columns(vals, acc):
+        cols = exactsum.columns(acc)
         for i in range(vals.shape[0]):
-            exactsum.add_lanes(fl, acc, vals[i])
-        exactsum.flush_lanes(fl, acc)
+            for q in range(vals.shape[1]):
+                if q != 9 or vals[i, 0] > 0.0:
+                    exactsum.put(cols, q, i, vals[i, q])
+            if exactsum.block_ends(i):
+                exactsum.add_block(cols, acc)
+        exactsum.flush_columns(cols, acc, vals.shape[0])
 
     rng = np.random.default_rng(23)
-    n, k = 3 * exactsum.FLUSH_EVERY + 17, 15
+    n, k = 5 * exactsum.FLUSH_EVERY + 17, 15
     vals = mixed_values(rng, n * k).reshape(n, k)
     vals[:, 4] = 0.0
     vals[::7, 5] = -0.0
     vals[100, 6] = np.nan
     vals[200, 7] = 2.0 * exactsum.RANGE
     vals[300, 8] = -np.inf
-    a, b = exactsum.new_accumulator(k), exactsum.new_accumulator(k)
-    by_value(vals, a)
-    by_lanes(vals, b)
-    assert np.array_equal(a, b)
+    vals[:, 10] = 2.0 ** -60 * rng.integers(1, 1000, size=n)  # tiny, exact in the last bin
+    # near the range, one sign: more than 2**13 of these overflow a float partial sum's 53 bits
+    # unless it is moved to the integers every FLUSH_EVERY values
+    vals[:, 11] = exactsum.RANGE * rng.uniform(0.98, 0.99, size=n)
+    for m in (1, exactsum.COLUMN_BLOCK - 1, exactsum.COLUMN_BLOCK, exactsum.COLUMN_BLOCK + 1, n):
+        a, b = exactsum.new_accumulator(k), exactsum.new_accumulator(k)
+        by_value(vals[:m], a)
+        by_columns(vals[:m], b)
+        assert np.array_equal(a, b), m
     got = exactsum.values_all(b)
     assert np.isnan(got[6:9]).all() and got[4] == 0.0
-    for q in (0, 3, 9, 14):
+    for q in (0, 3, 10, 11, 14):
         assert got[q] == exactsum.exact_sum(vals[:, q])
+    assert got[9] == exactsum.exact_sum(vals[vals[:, 0] > 0.0, 9])
     # accumulators of any split of the rows add up to the whole, as an allreduce does
     c = exactsum.new_accumulator(k)
     for chunk in np.array_split(vals, 5):
         part = exactsum.new_accumulator(k)
-        by_lanes(np.ascontiguousarray(chunk), part)
+        by_columns(np.ascontiguousarray(chunk), part)
         c += part
     assert np.array_equal(exactsum.values_all(c), got, equal_nan=True)
 

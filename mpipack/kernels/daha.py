@@ -112,7 +112,7 @@ def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offse
                           update_lambda, acc, maxima):
     # form and dim are compile-time constants of each wrapper below: LLVM removes the dead
     # branches and keeps the coordinates in registers (a runtime range(dim) loop does not).
-    fbuf = exactsum.staging(acc)
+    cols = exactsum.columns(acc)  # the per-sphere sums, summed a block of spheres at a time
     # c = 2 (and AHA) make the scheme one-step: a2 = 0, and X^{n-1} need not be read at all
     two_step = a2 != 0.0
     gravity = pot[potential.POT_KIND] == potential.GRAVITY
@@ -178,30 +178,32 @@ def _multipliers_and_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offse
         # grad W (``kernels.potential``): X_i - Xbar, or the sphere's weight under gravity
         p0, p1, p2 = potential.pull(dim, pot, di, xi0, xi1, xi2, xb0, xb1, xb2)
         if gravity:
-            exactsum.add(fbuf, acc, dim + 2, potential.height_energy(dim, pot, di, xi0, xi1, xi2))
+            exactsum.put(cols, dim + 2, i, potential.height_energy(dim, pot, di, xi0, xi1, xi2))
         # (2.10a); also the exact partial sums and the maxima for the fused reduction
         xn0 = a1 * xi0 + (a2 * x_prev[i, 0] if two_step else 0.0) - a3 * p0 - f0
         x_new[i, 0] = xn0
-        exactsum.add(fbuf, acc, 0, xn0)
+        exactsum.put(cols, 0, i, xn0)
         dx2 = (xn0 - xi0) * (xn0 - xi0)
         xx2 = xi0 * xi0
         if dim > 1:
             xn1 = a1 * xi1 + (a2 * x_prev[i, 1] if two_step else 0.0) - a3 * p1 - f1
             x_new[i, 1] = xn1
-            exactsum.add(fbuf, acc, 1, xn1)
+            exactsum.put(cols, 1, i, xn1)
             dx2 += (xn1 - xi1) * (xn1 - xi1)
             xx2 += xi1 * xi1
         if dim > 2:
             xn2 = a1 * xi2 + (a2 * x_prev[i, 2] if two_step else 0.0) - a3 * p2 - f2
             x_new[i, 2] = xn2
-            exactsum.add(fbuf, acc, 2, xn2)
+            exactsum.put(cols, 2, i, xn2)
             dx2 += (xn2 - xi2) * (xn2 - xi2)
             xx2 += xi2 * xi2
-        exactsum.add(fbuf, acc, dim, dx2)
-        exactsum.add(fbuf, acc, dim + 1, xx2)
+        exactsum.put(cols, dim, i, dx2)
+        exactsum.put(cols, dim + 1, i, xx2)
+        if exactsum.block_ends(i):
+            exactsum.add_block(cols, acc)
         if dx2 > max_step2 or dx2 != dx2:
             max_step2 = dx2
-    exactsum.flush(fbuf, acc)
+    exactsum.flush_columns(cols, acc, n_local)
     if form == SMOOTH:
         max_overlap = 1.0 - np.sqrt(min_ratio2)
     maxima[MAX_STEP2] = max_step2
@@ -319,7 +321,7 @@ def nested_coefficients(method, alpha, tau):
 def _nested_step(form, dim, kind, y, x_lin, y_new, n_local, diam, pair_offsets, pair_j,
                  pair_lambda, walls, wall_lambda, xbar, pot, cy, cp, cw, cf, beta, update_lambda,
                  acc, maxima):
-    fbuf = exactsum.staging(acc)
+    cols = exactsum.columns(acc)  # the per-sphere sums, summed a block of spheres at a time
     gravity = pot[potential.POT_KIND] == potential.GRAVITY
     max_step2 = 0.0
     min_ratio2 = 1.0
@@ -397,7 +399,7 @@ def _nested_step(form, dim, kind, y, x_lin, y_new, n_local, diam, pair_offsets, 
         if gravity:  # grad W = m_i g along the last axis, and sphere i's share of W / g at Y^n
             weight = potential.mass(dim, pot, diam[i]) * pot[potential.POT_G]
             y0, y1, y2 = coordinates(dim, y, i)
-            exactsum.add(fbuf, acc, dim + 2, potential.height_energy(dim, pot, diam[i], y0, y1, y2))
+            exactsum.put(cols, dim + 2, i, potential.height_energy(dim, pot, diam[i], y0, y1, y2))
         dx2 = 0.0
         yy2 = 0.0
         for k in range(dim):
@@ -409,14 +411,16 @@ def _nested_step(form, dim, kind, y, x_lin, y_new, n_local, diam, pair_offsets, 
                 gw = w - xbar[k]
             yn = cy * yi + cp * x_lin[i, k] - cw * gw - cf * f[k]
             y_new[i, k] = yn
-            exactsum.add(fbuf, acc, k, yn)
+            exactsum.put(cols, k, i, yn)
             dx2 += (yn - yi) * (yn - yi)
             yy2 += yi * yi
-        exactsum.add(fbuf, acc, dim, dx2)
-        exactsum.add(fbuf, acc, dim + 1, yy2)
+        exactsum.put(cols, dim, i, dx2)
+        exactsum.put(cols, dim + 1, i, yy2)
+        if exactsum.block_ends(i):
+            exactsum.add_block(cols, acc)
         if dx2 > max_step2 or dx2 != dx2:
             max_step2 = dx2
-    exactsum.flush(fbuf, acc)
+    exactsum.flush_columns(cols, acc, n_local)
     maxima[MAX_STEP2] = max_step2
     max_overlap = 1.0 - np.sqrt(min_ratio2)
     if wall_overlap > max_overlap:  # (a NaN max_overlap stays NaN: the guard must see it)
@@ -537,7 +541,7 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
     dim = x.shape[1]
     keep_pair_force = pair_force.shape[0] > 0
     keep_wall_force = wall_force.shape[0] > 0
-    fbuf = exactsum.staging(acc)
+    cols = exactsum.columns(acc)  # the per-sphere sums, summed a block of spheres at a time
     g = np.zeros(dim)
     d = np.zeros(dim)
     max_overlap = 0.0
@@ -555,7 +559,7 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
                 g[k] = 0.0
             g[dim - 1] = potential.mass(dim, pot, diam[i]) * pot[potential.POT_G]
             xi0, xi1, xi2 = coordinates(dim, x, i)
-            exactsum.add(fbuf, acc, MET_WPOT, potential.height_energy(dim, pot, diam[i], xi0, xi1, xi2))
+            exactsum.put(cols, MET_WPOT, i, potential.height_energy(dim, pot, diam[i], xi0, xi1, xi2))
         else:
             for k in range(dim):
                 g[k] = x[i, k] - xbar[k]
@@ -639,18 +643,20 @@ def _pair_metrics(form, x, n_local, diam, gid, pair_offsets, pair_j, pair_lambda
         kkt2 = 0.0
         for k in range(dim):
             kkt2 += g[k] * g[k]
-        exactsum.add(fbuf, acc, MET_KKT2, kkt2)
-        exactsum.add(fbuf, acc, MET_GW2, gw2)
-        exactsum.add(fbuf, acc, MET_CF2, cf * cf)
-        exactsum.add(fbuf, acc, MET_OVERLAP_MEASURE, lens)
+        exactsum.put(cols, MET_KKT2, i, kkt2)
+        exactsum.put(cols, MET_GW2, i, gw2)
+        exactsum.put(cols, MET_CF2, i, cf * cf)
+        exactsum.put(cols, MET_OVERLAP_MEASURE, i, lens)
         if measures_a:
-            exactsum.add(fbuf, acc, MET_SPHERE_MEASURE, metrics.ball_volume(dim, 0.5 * di))
+            exactsum.put(cols, MET_SPHERE_MEASURE, i, metrics.ball_volume(dim, 0.5 * di))
+        if exactsum.block_ends(i):
+            exactsum.add_block(cols, acc)
         pressure[i] = mu
         contacts[i] = nc
         net_force[i] = np.sqrt(kkt2)
         if kkt2 > max_net2:
             max_net2 = kkt2
-    exactsum.flush(fbuf, acc)
+    exactsum.flush_columns(cols, acc, n_local)
     if form == SMOOTH:
         max_overlap = 1.0 - np.sqrt(min_ratio2)
     if wall_overlap > max_overlap:

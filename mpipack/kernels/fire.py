@@ -248,7 +248,7 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
     # form and dim are compile-time constants of each wrapper below: LLVM removes the dead
     # branches and keeps the coordinates in scalars (with small arrays indexed by a runtime
     # range(dim) loop the pass took 8 - 10% longer, 3D N = 2000 and 2D N = 8000 states)
-    fbuf = exactsum.staging(acc)
+    cols = exactsum.columns(acc)  # the per-sphere sums, summed a block of spheres at a time
     gravity = pot[potential.POT_KIND] == potential.GRAVITY
     # a dual step of gain 0 leaves every lambda (>= 0) as it is, lam + 0 = lam for a finite
     # phi: skip its read-modify-write of the multipliers (the L-BFGS gradient passes, FIRE's
@@ -325,7 +325,7 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
         # X_i - Xbar, or the sphere's weight under gravity (``kernels.potential``)
         p0, p1, p2 = potential.pull(dim, pot, di, xi0, xi1, xi2, xb0, xb1, xb2)
         if gravity:
-            exactsum.add(fbuf, acc, dim + ACC_WPOT, potential.height_energy(dim, pot, di, xi0, xi1, xi2))
+            exactsum.put(cols, dim + ACC_WPOT, i, potential.height_energy(dim, pot, di, xi0, xi1, xi2))
         dd0, dx2, xx2, power, force2 = _coordinate(a1, a2, a3, xi0, x_prev[i, 0], p0, f0)
         dd1 = 0.0
         dd2 = 0.0
@@ -355,19 +355,21 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
         if dim > 2:
             xn2 = xi2 + dd2
             x_new[i, 2] = xn2
-        exactsum.add(fbuf, acc, dim + ACC_XX2, xx2)
+        exactsum.put(cols, dim + ACC_XX2, i, xx2)
         if all_sums:  # an L-BFGS gradient pass needs only |X^n|^2 of these (``kernels_qn``)
-            exactsum.add(fbuf, acc, 0, xn0)
+            exactsum.put(cols, 0, i, xn0)
             if dim > 1:
-                exactsum.add(fbuf, acc, 1, xn1)
+                exactsum.put(cols, 1, i, xn1)
             if dim > 2:
-                exactsum.add(fbuf, acc, 2, xn2)
-            exactsum.add(fbuf, acc, dim + ACC_DX2, dx2)
-            exactsum.add(fbuf, acc, dim + ACC_POWER, power)
-            exactsum.add(fbuf, acc, dim + ACC_FORCE2, force2)
+                exactsum.put(cols, 2, i, xn2)
+            exactsum.put(cols, dim + ACC_DX2, i, dx2)
+            exactsum.put(cols, dim + ACC_POWER, i, power)
+            exactsum.put(cols, dim + ACC_FORCE2, i, force2)
+        if exactsum.block_ends(i):
+            exactsum.add_block(cols, acc)
         if dx2 > max_step2 or dx2 != dx2:
             max_step2 = dx2
-    exactsum.flush(fbuf, acc)
+    exactsum.flush_columns(cols, acc, n_local)
     maxima[MAX_STEP2] = max_step2
     max_overlap = 1.0 - np.sqrt(min_ratio2)
     if wall_overlap > max_overlap:

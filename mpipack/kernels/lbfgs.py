@@ -20,11 +20,10 @@ Each is written once for a compile-time dimension (``_dots(dim, ...)`` inlined i
 wrapper per dimension, as in ``kernels``): a sphere's g and step then live in registers. The
 first version looped over a runtime ``range(dim)`` through small temporary arrays, and its
 direction pass cost about three times as much (1.92 ms against 0.67 ms for 50000 spheres, m = 5,
-2D, an idle machine); the arithmetic and its order are the same, so are the bits. ``dots`` adds its 2m + 4 + b values
-per sphere to the exact sums as one row of lanes (``exactsum.add_lanes``, vectorised, padded to
-whole vector registers): 2.6 -> 1.4 ms in 2D at 50000 spheres (3D 3.1 -> 1.5), the same
-accumulator bit for bit. (Lanes did not pay in the fire-al kernel's 4 + b sums: its FIRE
-passes took 25% longer at 2D N = 20000, so it keeps per-value adds.)
+2D, an idle machine); the arithmetic and its order are the same, so are the bits. ``dots`` puts its 2m + 4 + b values
+per sphere into the exact sums' columns (``exactsum.columns``: cut and summed a block of spheres
+at a time, in vector instructions), the same accumulator bit for bit as per-value adds
+(docs/benchmarks.md, "Exact sums by columns").
 """
 
 import numpy as np
@@ -39,10 +38,10 @@ _AT_CAP = 1.0 - 1e-9
 @njit(cache=True, inline="always")
 def _dots(dim, x, x_new, n_local, qn, head, cap, acc, maxima):
     k_slots = qn.shape[1]
-    # one value per accumulator row and sphere, added as lanes (``exactsum.add_lanes``): the
-    # 2m + 4 + b exact sums per sphere are most of this pass's time
-    fl = exactsum.lanes(acc)
-    v = np.zeros(exactsum.lane_count(acc))
+    # one value per accumulator row and sphere, summed down the rows' columns a block of
+    # spheres at a time (``exactsum.columns``): the 2m + 4 + b exact sums per sphere are most of
+    # this pass's time
+    cols = exactsum.columns(acc)
     max2 = 0.0
     at_cap = 0
     for i in range(n_local):
@@ -63,21 +62,21 @@ def _dots(dim, x, x_new, n_local, qn, head, cap, acc, maxima):
                 s += g1 * qn[i, j, 1]
             if dim > 2:
                 s += g2 * qn[i, j, 2]
-            v[j] = s
-        v[k_slots] = gg
-        v[k_slots + 1] = x[i, 0]
+            exactsum.put(cols, j, i, s)
+        exactsum.put(cols, k_slots, i, gg)
+        exactsum.put(cols, k_slots + 1, i, x[i, 0])
         if dim > 1:
-            v[k_slots + 2] = x[i, 1]
+            exactsum.put(cols, k_slots + 2, i, x[i, 1])
         if dim > 2:
-            v[k_slots + 3] = x[i, 2]
-        if head >= 0:  # else the row of |S_head|^2 gets zeros
+            exactsum.put(cols, k_slots + 3, i, x[i, 2])
+        if head >= 0:  # else the rows of |S_head|^2 and G_OLD.S_head get zeros
             s2 = 0.0
             s2 += qn[i, head, 0] * qn[i, head, 0]
             if dim > 1:
                 s2 += qn[i, head, 1] * qn[i, head, 1]
             if dim > 2:
                 s2 += qn[i, head, 2] * qn[i, head, 2]
-            v[k_slots + 1 + dim] = s2
+            exactsum.put(cols, k_slots + 1 + dim, i, s2)
             # G_OLD.S_head: the slope of the step actually taken (shortened or not) at its start
             gs = 0.0
             gs += qn[i, k_slots - 1, 0] * qn[i, head, 0]
@@ -85,13 +84,14 @@ def _dots(dim, x, x_new, n_local, qn, head, cap, acc, maxima):
                 gs += qn[i, k_slots - 1, 1] * qn[i, head, 1]
             if dim > 2:
                 gs += qn[i, k_slots - 1, 2] * qn[i, head, 2]
-            v[k_slots + 2 + dim] = gs
+            exactsum.put(cols, k_slots + 2 + dim, i, gs)
             if s2 > max2 or s2 != s2:
                 max2 = s2
             if s2 >= _AT_CAP * cap * cap:
                 at_cap += 1
-        exactsum.add_lanes(fl, acc, v)
-    exactsum.flush_lanes(fl, acc)
+        if exactsum.block_ends(i):
+            exactsum.add_block(cols, acc)
+    exactsum.flush_columns(cols, acc, n_local)
     maxima[0] = max2
     return at_cap
 

@@ -103,13 +103,20 @@ def add(fbuf, acc, q, x):
 @njit(cache=True)
 def flush_row(fbuf, acc, q):
     """Move row q of the staging buffer into the int64 accumulator and carry."""
-    acc[q, 0] += np.int64(fbuf[q, 0] / ULP0)
-    acc[q, 1] += np.int64(fbuf[q, 1] / ULP1)
-    acc[q, 2] += np.int64(fbuf[q, 2] / ULP2)
-    acc[q, 3] += np.int64(fbuf[q, 3] / ULP3)
-    acc[q, 4] += np.int64(fbuf[q, 4])
+    _move_row(fbuf, q, acc, q)
+
+
+@njit(cache=True)
+def _move_row(partial, r, acc, q):
+    """Move the partial sums of row r of ``partial`` (``staging``'s layout) into quantity q of
+    the int64 accumulator, zero them, and carry."""
+    acc[q, 0] += np.int64(partial[r, 0] / ULP0)
+    acc[q, 1] += np.int64(partial[r, 1] / ULP1)
+    acc[q, 2] += np.int64(partial[r, 2] / ULP2)
+    acc[q, 3] += np.int64(partial[r, 3] / ULP3)
+    acc[q, 4] += np.int64(partial[r, 4])
     for k in range(NBINS + 2):
-        fbuf[q, k] = 0.0
+        partial[r, k] = 0.0
     normalize_row(acc[q])
 
 
@@ -130,65 +137,136 @@ def normalize_row(a):
         a[k - 1] += c
 
 
-@njit(cache=True, inline="always")
-def lanes(acc):
-    """A staging buffer for adding one value to *every* quantity of ``acc`` at a time
-    (``add_lanes``): shape (NBINS + 2, lane_count(acc)), zeroed, bins by quantity so that the
-    quantities are contiguous lanes (the compiler turns the loop over them into vector
-    instructions; per-value ``add`` calls are not). Row NBINS counts out-of-range values, row
-    NBINS + 1 (column 0) the calls since the last flush. The same three calls as ``staging``::
-
-        fl = exactsum.lanes(acc)
-        values = np.zeros(exactsum.lane_count(acc))
-        for i in ...:
-            values[:n_quantities] = ...           # one value per quantity, zeros after
-            exactsum.add_lanes(fl, acc, values)   # flushes by itself when due
-        exactsum.flush_lanes(fl, acc)
-
-    The accumulator is the same, bit for bit, as per-value ``add`` calls would give (each value
-    is cut the same way and every piece is exact)."""
-    return np.zeros((NBINS + 2, lane_count(acc)))
+# The items of one block of ``columns``: a power of two (an item's slot is i & (BLOCK - 1)); the
+# block of 7 quantities with its pieces and partial sums takes 20 KiB, inside the L1 cache.
+COLUMN_BLOCK = 128
 
 
 @njit(cache=True, inline="always")
-def lane_count(acc):
-    """The lanes of ``acc``'s quantities: their number rounded up to a multiple of 4 (whole
-    vector registers; the lanes beyond the quantities stay zero and are never flushed)."""
-    return (acc.shape[0] + 3) // 4 * 4
+def columns(acc):
+    """A staging buffer for adding, item after item (a kernel's spheres), one value to each of
+    several quantities of ``acc``, summed down each quantity's column a block of COLUMN_BLOCK
+    items at a time: cutting a column into its bins' pieces and adding them up are loops over
+    contiguous values, which the compiler turns into vector instructions (per-value ``add``
+    calls are not). The same three calls as ``staging``::
+
+        cols = exactsum.columns(acc)
+        for i in range(n):                        # items numbered 0, 1, ... n - 1
+            exactsum.put(cols, q, i, value)       # for each quantity q of item i
+            if exactsum.block_ends(i):            # the block is full: sum it
+                exactsum.add_block(cols, acc)
+        exactsum.flush_columns(cols, acc, n)
+
+    (The block's sum is called in the loop, not from an inlined helper: an inlined helper that
+    takes the buffer and calls on costs reference counts at every item, 10 ns a sphere; with a
+    tuple of arrays 25 ns.) One float64 array, shape (2 n_q + NBINS + 1,
+    COLUMN_BLOCK), n_q = acc.shape[0]: rows [0, n_q) the block's values by quantity, then
+    NBINS + 1 rows for a column's pieces (``_cut_column``), then n_q rows whose first NBINS + 2
+    columns are the partial sums as ``staging``'s rows. A quantity not put for some items
+    counts zeros for them. The accumulator is the same, bit for bit, as per-value ``add`` calls
+    give: every value is cut the same way, and every piece and partial sum is exact, in
+    whatever order they are added."""
+    n_q = acc.shape[0]
+    return np.zeros((2 * n_q + NBINS + 1, COLUMN_BLOCK))
 
 
 @njit(cache=True, inline="always")
-def add_lanes(fl, acc, values):
-    """Add values[q] to quantity q for every q (values: (lane_count(acc),), zero beyond the
-    quantities); see ``lanes``."""
-    for q in range(fl.shape[1]):
-        x = values[q]
-        ok = abs(x) < RANGE  # also False for NaN
-        q0, q1, q2, q3 = cut(x if ok else 0.0)
-        fl[0, q] += q0
-        fl[1, q] += q1
-        fl[2, q] += q2
-        fl[3, q] += q3
-        fl[4, q] += 0.0 if ok else 1.0
-    fl[5, 0] += 1.0
-    if fl[5, 0] == FLUSH_EVERY:
-        flush_lanes(fl, acc)
+def put(cols, q, i, x):
+    """Item i's value x of quantity q (see ``columns``)."""
+    cols[q, i & (COLUMN_BLOCK - 1)] = x
+
+
+@njit(cache=True, inline="always")
+def block_ends(i):
+    """Whether item i is the last of its block: then ``add_block`` is due (see ``columns``)."""
+    return (i & (COLUMN_BLOCK - 1)) == COLUMN_BLOCK - 1
 
 
 @njit(cache=True)
-def flush_lanes(fl, acc):
-    """Move the lanes' staging buffer into the int64 accumulator and carry (call once at the
-    end too). Written out as ``flush_row`` is: the two sharing an inlined helper made the L-BFGS
-    dots pass 20% slower (2D, 50000 spheres: 1.64 against 1.39 ms)."""
-    for q in range(acc.shape[0]):
-        acc[q, 0] += np.int64(fl[0, q] / ULP0)
-        acc[q, 1] += np.int64(fl[1, q] / ULP1)
-        acc[q, 2] += np.int64(fl[2, q] / ULP2)
-        acc[q, 3] += np.int64(fl[3, q] / ULP3)
-        acc[q, 4] += np.int64(fl[4, q])
-        for k in range(NBINS + 2):
-            fl[k, q] = 0.0
-        normalize_row(acc[q])
+def add_block(cols, acc):
+    """Sum a full block (after its last item's ``put`` calls; see ``columns``)."""
+    add_columns(cols, acc, COLUMN_BLOCK)
+
+
+@njit(cache=True, error_model="numpy")
+def _cut_column(column, count, pieces):
+    """pieces[k, :count] = bin k's pieces of column[:count] (``cut``), and in row NBINS a 1 for
+    each out-of-range value (|x| >= RANGE, NaN, Inf), whose pieces are zeros. No reassociation
+    here: the cut relies on the exact order of its operations."""
+    for t in range(count):
+        x = column[t]
+        ok = abs(x) < RANGE  # also False for NaN
+        q0, q1, q2, q3 = cut(x if ok else 0.0)
+        pieces[0, t] = q0
+        pieces[1, t] = q1
+        pieces[2, t] = q2
+        pieces[3, t] = q3
+        pieces[4, t] = 0.0 if ok else 1.0
+
+
+@njit(cache=True, error_model="numpy")
+def _any_nonzero(column, count):
+    """Whether column[:count] holds a value other than +-0."""
+    for t in range(count):
+        if column[t] != 0.0:
+            return True
+    return False
+
+
+# reassociation allowed: each row's pieces are multiples of its bin's ulp, at most 2**41 of them
+# each, so any partial sum of up to FLUSH_EVERY of them is exact, in any order (and the count
+# row holds small integers): the sums are the same bits as in order, and vectorised
+@njit(cache=True, error_model="numpy", fastmath={"reassoc"})
+def _sum_pieces(pieces, count, partial):
+    """partial[k] += sum_t pieces[k, t] (t < count) for k = 0 .. NBINS."""
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    s3 = 0.0
+    s4 = 0.0
+    for t in range(count):
+        s0 += pieces[0, t]
+        s1 += pieces[1, t]
+        s2 += pieces[2, t]
+        s3 += pieces[3, t]
+        s4 += pieces[4, t]
+    partial[0] += s0
+    partial[1] += s1
+    partial[2] += s2
+    partial[3] += s3
+    partial[4] += s4
+
+
+@njit(cache=True)
+def add_columns(cols, acc, count):
+    """Sum the first ``count`` items of the block into the quantities' partial sums (moved
+    into ``acc`` before they could hold more than FLUSH_EVERY pieces) and clear them. A
+    quantity whose values are all zeros (one not put in this pass) adds nothing."""
+    n_q = acc.shape[0]
+    pieces = cols[n_q:n_q + NBINS + 1]
+    for q in range(n_q):
+        if not _any_nonzero(cols[q], count):
+            continue
+        _cut_column(cols[q], count, pieces)
+        r = n_q + NBINS + 1 + q
+        _sum_pieces(pieces, count, cols[r])
+        for t in range(count):
+            cols[q, t] = 0.0
+        cols[r, NBINS + 1] += count
+        if cols[r, NBINS + 1] > FLUSH_EVERY - COLUMN_BLOCK:
+            _move_row(cols, r, acc, q)
+
+
+@njit(cache=True)
+def flush_columns(cols, acc, n_items):
+    """Sum the last, partial block (``n_items`` items put in all) and move every partial sum
+    into ``acc`` (call once at the end)."""
+    rest = n_items & (COLUMN_BLOCK - 1)
+    if rest > 0:
+        add_columns(cols, acc, rest)
+    n_q = acc.shape[0]
+    for q in range(n_q):
+        _move_row(cols, n_q + NBINS + 1 + q, acc, q)
 
 
 @njit(cache=True)
