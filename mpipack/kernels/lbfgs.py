@@ -20,10 +20,10 @@ Each is written once for a compile-time dimension (``_dots(dim, ...)`` inlined i
 wrapper per dimension, as in ``kernels``): a sphere's g and step then live in registers. The
 first version looped over a runtime ``range(dim)`` through small temporary arrays, and its
 direction pass cost about three times as much (1.92 ms against 0.67 ms for 50000 spheres, m = 5,
-2D, an idle machine); the arithmetic and its order are the same, so are the bits. ``dots`` puts its 2m + 4 + b values
-per sphere into the exact sums' columns (``exactsum.columns``: cut and summed a block of spheres
-at a time, in vector instructions), the same accumulator bit for bit as per-value adds
-(docs/benchmarks.md, "Exact sums by columns").
+2D, an idle machine); the arithmetic and its order are the same, so are the bits. ``dots``
+puts its 2m + 4 + b values per sphere into the exact sums' columns (``exactsum.columns``: cut
+and summed a block of spheres at a time, in vector instructions), the same accumulator bit for
+bit as per-value adds (docs/benchmarks.md, "Exact sums by columns").
 """
 
 import numpy as np

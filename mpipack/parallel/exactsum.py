@@ -157,9 +157,9 @@ def columns(acc):
                 exactsum.add_block(cols, acc)
         exactsum.flush_columns(cols, acc, n)
 
-    (The block's sum is called in the loop, not from an inlined helper: an inlined helper that
-    takes the buffer and calls on costs reference counts at every item, 10 ns a sphere; with a
-    tuple of arrays 25 ns.) One float64 array, shape (2 n_q + NBINS + 1,
+    The block's sum is called from the kernel's loop: an inlined helper that took the buffer
+    and called it would cost reference counts at every item (docs/benchmarks.md, "Exact sums by
+    columns"). One float64 array, not a tuple, for the same reason: shape (2 n_q + NBINS + 1,
     COLUMN_BLOCK), n_q = acc.shape[0]: rows [0, n_q) the block's values by quantity, then
     NBINS + 1 rows for a column's pieces (``_cut_column``), then n_q rows whose first NBINS + 2
     columns are the partial sums as ``staging``'s rows. A quantity not put for some items
