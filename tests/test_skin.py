@@ -1,6 +1,7 @@
 """The adaptive Verlet skin (``neighbor.adaptive_skin``): each build takes the skin that suits
 the last period's speed, and the iterates are the same bits whatever skin the rows had."""
 
+import numpy as np
 import pytest
 
 from conftest import assert_bitwise_equal, describe
@@ -48,3 +49,63 @@ def test_nested_methods_keep_their_skin(run_mpipack):
                                                    "stop.max_iter=100"], timeout=120)
     assert proc.returncode in (0, 4), describe(proc)
     assert summary["skin_range"] == [0.3, 0.3]
+
+
+def _first_rows(scene):
+    """A solver set up on ``scene`` (one rank, in-process): its start's rows and skin."""
+    from mpipack.engine.solver import Solver
+    from mpipack.parallel.comm import Comm
+    s = Solver(scene, Comm())
+    s.initialise()
+    st = s.state
+    n = st.n_local
+    owner = np.repeat(np.arange(n), np.diff(st.pair_offsets[:n + 1]))
+    gap = np.linalg.norm(st.x[owner] - st.x[st.pair_j[:st.pair_offsets[n]]], axis=1) \
+        - 0.5 * (st.diam[owner] + st.diam[st.pair_j[:st.pair_offsets[n]]])
+    return s, gap
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_dense_start_is_built_with_the_smallest_skin_and_no_bit_changes(dim, monkeypatch):
+    """A dense fresh start's first rows take the smallest skin (rebuild.SKIN_MIN: its rows at
+    the usual skin are the run's largest); the build after the spread takes the usual skin; and
+    the run is the same bits as one whose start is built with the usual skin."""
+    from mpipack import config
+    from mpipack.engine import loop
+    from mpipack.engine.solver import Solver
+    from mpipack.parallel.comm import Comm
+    scene = config.load("default", [f"dim={dim}", "n=400", "stop.max_iter=600"])
+    s, gap = _first_rows(scene)
+    assert s.skin == rebuild.SKIN_MIN * s.d_max and gap.size > 10 * 400  # tens of contacts a sphere
+    assert np.all(gap < s.skin)
+    built = s.counters["rebuilds"]
+    s.step()  # the first pass (moving the spheres by ~1e-3 d) needs no build; the spread does
+    s.step()
+    assert s.skin == s.skin_max and s.counters["rebuilds"] == built + 1
+    solver_new, res_new = loop.run(scene, Comm())
+
+    usual = Solver.rebuild
+    monkeypatch.setattr(Solver, "rebuild", lambda self, rebalance=False, hist=None, skin=None:
+                        usual(self, rebalance, hist))
+    s_usual, gap_usual = _first_rows(scene)
+    assert s_usual.skin == s_usual.skin_max > 0.0 and gap_usual.size > gap.size
+    assert np.any(gap_usual > rebuild.SKIN_MIN * s_usual.d_max)  # the usual skin: pairs beyond the smallest
+    solver_old, res_old = loop.run(scene, Comm())
+    new, old = solver_new.gather(), solver_old.gather()
+    assert res_new["iterations"] == res_old["iterations"]
+    for key in ("x", "x_prev", "pairs_gid", "pairs_lambda"):
+        assert np.array_equal(new[key].view(np.uint8), old[key].view(np.uint8)), key
+    assert res_new["skin_min"] == res_old["skin_min"]  # the start's build is not in the skin range
+
+
+@pytest.mark.parametrize("dim", [1, 2, 3])
+def test_a_packed_start_keeps_the_usual_skin(dim):
+    """A lattice start (a packing: it fills its cloud's volume about once) is built with the
+    usual skin, so that a still start is not built again; a dense Gaussian one with the
+    smallest."""
+    from mpipack import config
+    lattice = config.load("default", [f"dim={dim}", "n=300", "init.kind=lattice"])
+    s, gap = _first_rows(lattice)
+    assert s.skin == s.skin_max > 0.0 and np.any(gap >= 0.0)
+    s_dense, _ = _first_rows(config.load("default", [f"dim={dim}", "n=300"]))
+    assert s_dense.skin == rebuild.SKIN_MIN * s_dense.d_max < s_dense.skin_max

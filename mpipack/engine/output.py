@@ -57,10 +57,13 @@ def snapshot_fields(solver):
     entries = int(st.pair_offsets[n])
     pair_force = np.zeros(entries)
     fig, spheres = measures.measure(solver, overlap_a=False, pair_force=pair_force)
-    gi = np.repeat(st.gid[:n], np.diff(st.pair_offsets[:n + 1]))
-    gj = st.gid[st.pair_j[:entries]]
-    keep = (pair_force > 0) & (gi < gj)
-    pairs = (gi[keep].astype(np.int64), gj[keep].astype(np.int64), pair_force[keep])
+    # the entries with a force first (a dense start's rows hold hundreds of entries a sphere,
+    # few or none of them with a force), then their spheres' gids
+    e = np.flatnonzero(pair_force > 0)
+    gi = st.gid[np.searchsorted(st.pair_offsets[:n + 1], e, side="right") - 1]
+    gj = st.gid[st.pair_j[e]]
+    keep = gi < gj
+    pairs = (gi[keep].astype(np.int64), gj[keep].astype(np.int64), pair_force[e[keep]])
     return st.gid[:n], {"position": st.x[:n], "diameter": st.diam[:n], **spheres}, fig, pairs
 
 
