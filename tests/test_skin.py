@@ -79,8 +79,8 @@ def test_a_dense_start_is_built_with_the_smallest_skin_and_no_bit_changes(dim, m
     assert s.skin == rebuild.SKIN_MIN * s.d_max and gap.size > 10 * 400  # tens of contacts a sphere
     assert np.all(gap < s.skin)
     built = s.counters["rebuilds"]
-    s.step()  # the first pass (moving the spheres by ~1e-3 d) needs no build; the spread does
-    s.step()
+    # two iterations: the first pass (moving the spheres by ~1e-3 d) needs no build; the spread does
+    loop.run(config.load("default", [f"dim={dim}", "n=400", "stop.max_iter=2"]), Comm(), solver=s)
     assert s.skin == s.skin_max and s.counters["rebuilds"] == built + 1
     solver_new, res_new = loop.run(scene, Comm())
 
@@ -107,5 +107,12 @@ def test_a_packed_start_keeps_the_usual_skin(dim):
     lattice = config.load("default", [f"dim={dim}", "n=300", "init.kind=lattice"])
     s, gap = _first_rows(lattice)
     assert s.skin == s.skin_max > 0.0 and np.any(gap >= 0.0)
-    s_dense, _ = _first_rows(config.load("default", [f"dim={dim}", "n=300"]))
+    dense = config.load("default", [f"dim={dim}", "n=300"])
+    s_dense, gap_dense = _first_rows(dense)
     assert s_dense.skin == rebuild.SKIN_MIN * s_dense.d_max < s_dense.skin_max
+    # ``mpipack check`` counts the rows the run builds: the same skin, about as many entries
+    from mpipack.analysis import footprint
+    assert footprint.start_skin(lattice) == s.skin / s.d_max
+    assert footprint.start_skin(dense) == s_dense.skin / s_dense.d_max
+    estimate = 2 * footprint.start_and_memory(dense, 1, budget_bytes=2 ** 40)["row_pairs"]
+    assert 0.67 < estimate / gap_dense.size < 1.5, (estimate, gap_dense.size)

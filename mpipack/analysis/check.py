@@ -186,7 +186,8 @@ def _start_lines(scene, ranks):
     n = scene.n
     L.append(f"  overlapping pairs at the start ~ {mem['overlapping_pairs']:.4g} "
              f"({2 * mem['overlapping_pairs'] / n:.3g} per sphere)")
-    L.append(f"  pair-row entries (pairs within d_kl + skin, twice) ~ {2 * mem['row_pairs']:.4g}, "
+    L.append(f"  pair-row entries (pairs within d_kl + skin, the start's skin {mem['start_skin']:g} d_max; "
+             f"twice) ~ {2 * mem['row_pairs']:.4g}, "
              f"{mem['entries_per_rank']:.4g} per rank on {ranks} rank(s)")
     L.append(f"  memory per rank: particles {_gib(mem['particles_bytes'])} + rows {_gib(mem['entries_per_rank'] * BYTES_PER_ENTRY)} "
              f"= {_gib(mem['steady_bytes'])}; while rows are built up to {_gib(mem['peak_bytes'])}; "

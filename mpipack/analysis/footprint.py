@@ -8,7 +8,7 @@ regularised lower incomplete gamma function P(b/2, r^2 / (4 sigma^2)). Ball star
 pair (an upper bound). Lattice: the lattice's own shells within r (jitter ignored). A start file
 (init.kind = "file"): its pairs closer than r, counted (a k-d tree). Memory per
 rank: ``engine.memory.BYTES_PER_PARTICLE`` per particle plus 12 bytes per pair-row entry (two per pair
-within d_kl + skin), and ``engine.memory.BYTES_PER_ENTRY_PEAK`` per entry while rows are built: the
+within d_kl + skin, the start's skin: ``start_skin``), and ``engine.memory.BYTES_PER_ENTRY_PEAK`` per entry while rows are built: the
 run refuses a start whose rows do not fit (exit 2); the check says so first and suggests the
 spread (init.sigma) that fits.
 """
@@ -51,6 +51,28 @@ def _lattice_cell_measure(b, s):
     return {1: s, 2: math.sqrt(3) / 2 * s * s, 3: s ** 3 / math.sqrt(2)}[b]
 
 
+def start_skin(scene):
+    """The skin of the start's first build, in largest diameters (``Solver.initialise``): the
+    smallest (rebuild.SKIN_MIN) when the spheres fill the uniform ball of their cloud's radius
+    of gyration R_g more than solver.DENSE_START times over (that ball's radius R: R^2 =
+    (b+2)/b R_g^2) and the method's iterates do not depend on the rows' reach (not nested),
+    else neighbor.skin. Gaussian: R_g^2 = b sigma^2; ball: R its radius; lattice: a packing,
+    never dense; file: its positions' R_g."""
+    from mpipack.engine import initial as init, rebuild, solver
+    n, b, kind = scene.n, scene.dim, scene.init.kind
+    if scene.method.nested or kind == "lattice" or n < 2:
+        return float(scene.neighbor.skin)
+    if kind == "gaussian":
+        radius2 = (b + 2) * init.gaussian_sigma(scene) ** 2
+    elif kind == "ball":
+        radius2 = init.ball_radius(scene) ** 2
+    else:
+        x = init.start_file(scene).x
+        radius2 = (b + 2) / b * float(((x - x.mean(axis=0)) ** 2).sum(axis=1).mean())
+    fraction = n * scene.particles.mean_radius_power(b) / radius2 ** (0.5 * b) if radius2 > 0 else 0.0
+    return rebuild.SKIN_MIN if fraction > solver.DENSE_START else float(scene.neighbor.skin)
+
+
 def start_and_memory(scene, ranks, budget_bytes=None):
     """Overlapping pairs of the start, pair-row entries and memory per rank, and the spread
     that would fit (Gaussian starts)."""
@@ -58,7 +80,8 @@ def start_and_memory(scene, ranks, budget_bytes=None):
     from mpipack.engine.memory import BYTES_PER_ENTRY_PEAK, BYTES_PER_PARTICLE, available_memory_bytes
     p = scene.particles
     d_mean = p.d_mean
-    cut = p.d_max + scene.neighbor.skin * p.d_max  # rows: every pair within d_kl + skin
+    skin = start_skin(scene)
+    cut = p.d_max + skin * p.d_max  # the start's rows: every pair within d_kl + skin
     overl = pairs_within(scene, d_mean)
     row_pairs = pairs_within(scene, cut)
     entries = 2.0 * row_pairs / ranks
@@ -68,7 +91,7 @@ def start_and_memory(scene, ranks, budget_bytes=None):
     if budget_bytes is None:
         gib = scene.neighbor.max_pair_gib
         budget_bytes = gib * 2 ** 30 if gib is not None else available_memory_bytes() / ranks
-    out = {"overlapping_pairs": overl, "row_pairs": row_pairs, "entries_per_rank": entries,
+    out = {"overlapping_pairs": overl, "row_pairs": row_pairs, "start_skin": skin, "entries_per_rank": entries,
            "particles_bytes": per_rank_particles, "steady_bytes": steady, "peak_bytes": peak,
            "budget_bytes": budget_bytes, "fits": peak <= budget_bytes and per_rank_particles <= budget_bytes,
            "sigma": init.gaussian_sigma(scene) if scene.init.kind == "gaussian" else None,
