@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from conftest import assert_bitwise_equal, describe
-from mpipack.engine import rebuild
+from mpipack.engine import initial as init, rebuild
 
 
 def test_next_skin_grows_with_the_speed_within_its_bounds():
@@ -66,8 +66,8 @@ def _first_rows(scene):
 
 
 @pytest.mark.parametrize("dim", [2, 3])
-def test_a_dense_start_is_built_with_the_smallest_skin_and_no_bit_changes(dim, monkeypatch):
-    """A dense fresh start's first rows take the smallest skin (rebuild.SKIN_MIN: its rows at
+def test_a_dense_start_is_built_with_a_small_skin_and_no_bit_changes(dim, monkeypatch):
+    """A dense fresh start's first rows take a small skin (init.DENSE_START_SKIN: its rows at
     the usual skin are the run's largest); the build after the spread takes the usual skin; and
     the run is the same bits as one whose start is built with the usual skin."""
     from mpipack import config
@@ -76,7 +76,7 @@ def test_a_dense_start_is_built_with_the_smallest_skin_and_no_bit_changes(dim, m
     from mpipack.parallel.comm import Comm
     scene = config.load("default", [f"dim={dim}", "n=400", "stop.max_iter=600"])
     s, gap = _first_rows(scene)
-    assert s.skin == rebuild.SKIN_MIN * s.d_max and gap.size > 10 * 400  # tens of contacts a sphere
+    assert s.skin == init.DENSE_START_SKIN * s.d_max and gap.size > 10 * 400  # tens of contacts a sphere
     assert np.all(gap < s.skin)
     built = s.counters["rebuilds"]
     # two iterations: the first pass (moving the spheres by ~1e-3 d) needs no build; the spread does
@@ -89,7 +89,7 @@ def test_a_dense_start_is_built_with_the_smallest_skin_and_no_bit_changes(dim, m
                         usual(self, rebalance, hist))
     s_usual, gap_usual = _first_rows(scene)
     assert s_usual.skin == s_usual.skin_max > 0.0 and gap_usual.size > gap.size
-    assert np.any(gap_usual > rebuild.SKIN_MIN * s_usual.d_max)  # the usual skin: pairs beyond the smallest
+    assert np.any(gap_usual > init.DENSE_START_SKIN * s_usual.d_max)  # the usual skin reaches further
     solver_old, res_old = loop.run(scene, Comm())
     new, old = solver_new.gather(), solver_old.gather()
     assert res_new["iterations"] == res_old["iterations"]
@@ -101,15 +101,15 @@ def test_a_dense_start_is_built_with_the_smallest_skin_and_no_bit_changes(dim, m
 @pytest.mark.parametrize("dim", [1, 2, 3])
 def test_a_packed_start_keeps_the_usual_skin(dim):
     """A lattice start (a packing: it fills its cloud's volume about once) is built with the
-    usual skin, so that a still start is not built again; a dense Gaussian one with the
-    smallest."""
+    usual skin, so that a still start is not built again; a dense Gaussian one with
+    init.DENSE_START_SKIN."""
     from mpipack import config
     lattice = config.load("default", [f"dim={dim}", "n=300", "init.kind=lattice"])
     s, gap = _first_rows(lattice)
     assert s.skin == s.skin_max > 0.0 and np.any(gap >= 0.0)
     dense = config.load("default", [f"dim={dim}", "n=300"])
     s_dense, gap_dense = _first_rows(dense)
-    assert s_dense.skin == rebuild.SKIN_MIN * s_dense.d_max < s_dense.skin_max
+    assert s_dense.skin == init.DENSE_START_SKIN * s_dense.d_max < s_dense.skin_max
     # ``mpipack check`` counts the rows the run builds: the same skin, about as many entries
     from mpipack.analysis import footprint
     assert footprint.start_skin(lattice) == s.skin / s.d_max

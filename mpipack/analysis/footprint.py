@@ -52,15 +52,15 @@ def _lattice_cell_measure(b, s):
 
 
 def start_skin(scene):
-    """The skin of the start's first build, in largest diameters (``Solver.initialise``): the
-    smallest (rebuild.SKIN_MIN) when the spheres fill the uniform ball of their cloud's radius
-    of gyration R_g more than solver.DENSE_START times over (that ball's radius R: R^2 =
-    (b+2)/b R_g^2) and the method's iterates do not depend on the rows' reach (not nested),
-    else neighbor.skin. Gaussian: R_g^2 = b sigma^2; ball: R its radius; lattice: a packing,
-    never dense; file: its positions' R_g."""
-    from mpipack.engine import initial as init, rebuild, solver
+    """The skin of the start's first build, in largest diameters (``Solver.initialise``):
+    init.DENSE_START_SKIN for a dense start (``initial.is_dense``) of a method whose iterates
+    do not depend on the rows' reach (not nested), else neighbor.skin. The squared radius of
+    the uniform ball of the cloud's radius of gyration R_g: Gaussian (b+2) sigma^2 (R_g^2 =
+    b sigma^2); ball its radius squared; lattice a packing, never dense; file from its
+    positions."""
+    from mpipack.engine import initial as init
     n, b, kind = scene.n, scene.dim, scene.init.kind
-    if scene.method.nested or kind == "lattice" or n < 2:
+    if scene.method.nested or kind == "lattice":
         return float(scene.neighbor.skin)
     if kind == "gaussian":
         radius2 = (b + 2) * init.gaussian_sigma(scene) ** 2
@@ -69,8 +69,8 @@ def start_skin(scene):
     else:
         x = init.start_file(scene).x
         radius2 = (b + 2) / b * float(((x - x.mean(axis=0)) ** 2).sum(axis=1).mean())
-    fraction = n * scene.particles.mean_radius_power(b) / radius2 ** (0.5 * b) if radius2 > 0 else 0.0
-    return rebuild.SKIN_MIN if fraction > solver.DENSE_START else float(scene.neighbor.skin)
+    dense = init.is_dense(n, b, n * scene.particles.mean_radius_power(b), radius2)
+    return init.DENSE_START_SKIN if dense else float(scene.neighbor.skin)
 
 
 def start_and_memory(scene, ranks, budget_bytes=None):

@@ -255,6 +255,23 @@ def scene_diameters(scene, gids):
     return config.truncated_diameters(p.distribution, float(p.diameter), float(p.spread), z)
 
 
+# ---- a dense start ----------------------------------------------------------------------------
+# A start whose spheres fill the uniform ball of their cloud's radius of gyration R_g more than
+# DENSE_START times over (sum_i (d_i/2)^b > DENSE_START R^b, R^2 = (b+2)/b R_g^2: a packing
+# measures at most ~1.15, a short chain of touching spheres; the default scene's Gaussian start
+# hundreds) has its first pair rows built with the skin DENSE_START_SKIN (in largest diameters)
+# instead of the usual one (``Solver.initialise``): they last only until the spread (its first
+# pass moves the spheres by ~1e-3 d), and at the usual skin they are the run's largest.
+DENSE_START = 2.0
+DENSE_START_SKIN = 0.05
+
+
+def is_dense(n, dim, sum_rb, radius2):
+    """Whether n spheres of sum_i (d_i/2)^b = ``sum_rb`` are a dense start in a cloud of
+    squared radius ``radius2`` (the uniform ball of its radius of gyration; see DENSE_START)."""
+    return n > 1 and radius2 > 0.0 and sum_rb > DENSE_START * radius2 ** (0.5 * dim)
+
+
 # ---- breaking an exact symmetry ---------------------------------------------------------------
 # Spheres whose centres coincide exactly feel no force from each other: the S gradient
 # -2 (X_i - X_j) is zero and the NS direction is undefined. A start (or a state read back)

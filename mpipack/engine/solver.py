@@ -68,10 +68,6 @@ class MoveBound:
             self.bound = max(0.0, self.bound - self.assumed + real)
 
 
-# a fresh start whose spheres fill their cloud's volume this many times over is built with the
-# smallest skin (``Solver._dense_start``)
-DENSE_START = 2.0
-
 
 class Solver:
     """One rank's particles, ghosts and pair rows, and the collective operations that advance
@@ -176,15 +172,14 @@ class Solver:
         lam_fresh = st.lambda_fresh
         st.set_particles(local, ghost)
         st.lambda_fresh = lam_fresh
-        # a dense fresh start's first rows take the smallest skin (rebuild.SKIN_MIN): its rows
+        # a dense fresh start's first rows take a small skin (init.DENSE_START_SKIN): its rows
         # are the run's largest (hundreds of entries a sphere, at the usual skin mostly pairs
         # beyond contact), and they last only until the spread (the first pass moves the
-        # spheres by ~1e-3 d, a rebuild.SKIN_MIN skin lasts 0.025 d). A pair beyond contact
-        # adds exact zeros to every pass, so the results are the same bits (for a method whose
-        # iterates do not depend on the rows' reach, ``skin_free``); the next build takes the
-        # usual skin (``rebuild``)
+        # spheres by ~1e-3 d). A pair beyond contact adds exact zeros to every pass, so the
+        # results are the same bits (for a method whose iterates do not depend on the rows'
+        # reach, ``skin_free``); the next build takes the usual skin (``rebuild``)
         dense = source is None and self.method.skin_free and self._dense_start()
-        self.rebuild(rebalance=True, hist=hist, skin=rebuild_mod.SKIN_MIN * self.d_max if dense else None)
+        self.rebuild(rebalance=True, hist=hist, skin=init.DENSE_START_SKIN * self.d_max if dense else None)
         self._break_coincidence()
         self.xbar, w0 = self.centre_of_mass()
         if source is not None:
@@ -200,19 +195,17 @@ class Solver:
         measures.measure(self, empty=True)
 
     def _dense_start(self):
-        """Whether the spheres fill the volume of their cloud DENSE_START times over: sum_i
-        (d_i/2)^b above DENSE_START R^b, R the radius of the uniform ball of the cloud's radius
-        of gyration R_g (R^2 = (b+2)/b R_g^2). A packing's fraction so measured is at most
-        ~1.15 (a short chain of touching spheres); the default scene's Gaussian start's is in
-        the hundreds (hundreds of overlaps a sphere). Collective; plain float sums: it chooses
-        the first build's skin, which changes no result."""
+        """Whether the start is dense (``initial.is_dense``: its spheres fill the uniform ball
+        of their cloud's radius of gyration R_g, R^2 = (b+2)/b R_g^2, init.DENSE_START times
+        over). Collective; plain float sums: it chooses the first build's skin, which changes
+        no result."""
         st, b, n = self.state, self.dim, self.n
         x, d = st.x[:st.n_local], st.diam[:st.n_local]
         local = np.concatenate([x.sum(axis=0), [(x * x).sum(), ((0.5 * d) ** b).sum()]])
         total = self.comm.allreduce(local, op="sum")
         mean = total[:b] / n
         rg2 = total[b] / n - float(mean @ mean)
-        return n > 1 and rg2 > 0.0 and total[b + 1] > DENSE_START * ((b + 2) / b * rg2) ** (0.5 * b)
+        return init.is_dense(n, b, total[b + 1], (b + 2) / b * rg2)
 
     def _break_coincidence(self):
         """Spheres at exactly the same centre push each other nowhere: move them apart by a
