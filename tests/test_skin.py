@@ -116,3 +116,11 @@ def test_a_packed_start_keeps_the_usual_skin(dim):
     assert footprint.start_skin(dense) == s_dense.skin / s_dense.d_max
     estimate = 2 * footprint.start_and_memory(dense, 1, budget_bytes=2 ** 40)["row_pairs"]
     assert 0.67 < estimate / gap_dense.size < 1.5, (estimate, gap_dense.size)
+
+
+def test_a_run_that_stops_at_its_dense_start_writes_a_plain_summary(run_mpipack):
+    """stop.max_iter = 0 on a dense start: only the start's build was made, which the skin range
+    leaves out; summary.json has no skin range rather than an infinite one."""
+    proc, summary, _ = run_mpipack(1, None, ["n=200", "stop.max_iter=0"], timeout=120)
+    assert proc.returncode in (0, 4), describe(proc)
+    assert summary["rebuilds"] == 1 and "skin_range" not in summary, summary.get("skin_range")

@@ -8,9 +8,9 @@ regularised lower incomplete gamma function P(b/2, r^2 / (4 sigma^2)). Ball star
 pair (an upper bound). Lattice: the lattice's own shells within r (jitter ignored). A start file
 (init.kind = "file"): its pairs closer than r, counted (a k-d tree). Memory per
 rank: ``engine.memory.BYTES_PER_PARTICLE`` per particle plus 12 bytes per pair-row entry (two per pair
-within d_kl + skin, the start's skin: ``start_skin``), and ``engine.memory.BYTES_PER_ENTRY_PEAK`` per entry while rows are built: the
-run refuses a start whose rows do not fit (exit 2); the check says so first and suggests the
-spread (init.sigma) that fits.
+within d_kl + skin, at the start's skin: ``start_skin``), and ``engine.memory.BYTES_PER_ENTRY_PEAK``
+per entry while rows are built: the run refuses a start whose rows do not fit (exit 2); the
+check says so first and suggests the spread (init.sigma) that fits.
 """
 
 import math

@@ -498,7 +498,9 @@ def result_summary(scene, comm, res, wall, profile):
     }
     for k in ("rebuilds", "rebalances", "far_ghosts", "max_imbalance", "inner_iterations"):
         out[k] = res[k]
-    if res["rebuilds"]:  # the builds' Verlet skins, in largest diameters (neighbor.adaptive_skin)
+    # the builds' Verlet skins, in largest diameters (neighbor.adaptive_skin); none yet when only a
+    # dense start's build was made (``Solver.rebuild``)
+    if res["rebuilds"] and math.isfinite(res["skin_min"]):
         out["skin_range"] = [res["skin_min"], res["skin_max"]]
     if "schedule" in res:
         out["schedule"] = res["schedule"]  # phase reached, its switch, restarts, ALM steps

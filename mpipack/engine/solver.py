@@ -68,7 +68,6 @@ class MoveBound:
             self.bound = max(0.0, self.bound - self.assumed + real)
 
 
-
 class Solver:
     """One rank's particles, ghosts and pair rows, and the collective operations that advance
     them. ``scene`` is a ``config.Scene``, ``comm`` a ``parallel.comm.Comm``; ``method`` is
