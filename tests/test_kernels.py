@@ -380,6 +380,22 @@ def test_build_rows_matches_brute_force(dim):
         assert sum(len(r) for r in want) > 0
 
 
+def test_rank_sort_sorts_or_refuses_equal_keys():
+    """A row's sort by ranks: keys ascending and partners alike for distinct keys (rows of 0 to
+    48 entries); with two equal keys it says so (False), and the build then sorts by insertion."""
+    rng = np.random.default_rng(5)
+    for n in (0, 1, 2, 7, 14, 48):
+        g = rng.permutation(10 * n + 1)[:n].astype(np.int64)
+        j = rng.integers(0, 1000, size=n).astype(np.int64)
+        g_out, j_out = np.full(n + 2, -7, np.int64), np.full(n + 2, -7, np.int64)
+        assert neighbors._rank_sort(g, j, n, g_out, j_out)
+        o = np.argsort(g)
+        assert np.array_equal(g_out[:n], g[o]) and np.array_equal(j_out[:n], j[o])
+        assert np.all(g_out[n:] == -7)
+    g = np.array([9, 4, 9, 1], np.int64)
+    assert not neighbors._rank_sort(g, np.arange(4), 4, np.empty(4, np.int64), np.empty(4, np.int64))
+
+
 def test_build_rows_keeps_history():
     rng = np.random.default_rng(3)
     dim, n, n_local = 2, 40, 30

@@ -209,13 +209,13 @@ def _every_entry_alone(n_local, offsets, pair_j):
             np.full(n_pairs, -1, dtype=np.int64), np.empty((n_pairs, kernels_fire.N_TERMS)))
 
 
-@pytest.mark.parametrize("n_local", [30, 17])
-def test_pair_halves_list_every_pair_once(n_local):
+@pytest.mark.parametrize("n, n_local", [(30, 30), (30, 17), (50, 50), (50, 33)])
+def test_pair_halves_list_every_pair_once(n, n_local):
     """Every row entry is in the half list or is the mirror of one that is, never both; a
     mirror is the partner's entry of the same pair, both ways; ghost partners, and a pair whose
-    two entries hold different lambdas, are listed from each side with no mirror."""
+    two entries hold different lambdas, are listed from each side with no mirror. Rows of 29
+    entries (a mirror found by a scan) and of 49 (by bisection on the gids)."""
     rng = np.random.default_rng(11 + n_local)
-    n = 30
     gid = rng.permutation(n).astype(np.int64)
     offsets, pair_j = rows_complete(n_local, n, gid)
     owner = np.repeat(np.arange(n_local), np.diff(offsets))

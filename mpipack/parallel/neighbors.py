@@ -198,6 +198,9 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
     row_g = np.empty(row_cap, dtype=np.int64)
     row_j = np.empty(row_cap, dtype=np.int64)
     row_l = np.empty(row_cap)
+    # the rank sort's output, swapped with row_g, row_j
+    row_g2 = np.empty(row_cap, dtype=np.int64)
+    row_j2 = np.empty(row_cap, dtype=np.int64)
     # gid -> index lookup, built only when a history partner is not among the candidates
     sgid = np.empty(0, dtype=np.int64)
     gorder = np.empty(0, dtype=np.int64)
@@ -269,7 +272,11 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
                 row_j[kept] = j
                 kept += 1
         cnt = kept
-        _sort_row(row_g, row_j, cnt)
+        if cnt <= _SORT_SHORT and _rank_sort(row_g, row_j, cnt, row_g2, row_j2):
+            row_g, row_g2 = row_g2, row_g
+            row_j, row_j2 = row_j2, row_j
+        else:
+            _sort_row(row_g, row_j, cnt)
         for q in range(cnt):
             row_l[q] = 0.0
         # the history (in gid order, as ``history`` gives it) merged into the sorted row
@@ -343,11 +350,35 @@ def build_rows(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, his
              np.int64(max_entries))
 
 
+# a row of at most this many entries is sorted by ranks (``_rank_sort``), a longer one by
+# ``_sort_row``
+_SORT_SHORT = 48
+
+
+@njit(cache=True, inline="always")
+def _rank_sort(g, j, n, g_out, j_out):
+    """g[:n] ascending into g_out[:n], j alike into j_out, each entry placed at its rank (the
+    number of smaller keys: n^2 comparisons with no branch, quicker than an insertion sort's
+    mispredicted exits for a row of ~4-14 entries, docs/benchmarks.md "Cheaper rebuilds").
+    Returns False, with g_out and j_out unfinished, if two keys are equal (their ranks are then
+    not all distinct: the ranks' sum falls short of 0 + 1 + ... + n-1)."""
+    rank_sum = 0
+    for a in range(n):
+        ga = g[a]
+        r = 0
+        for c in range(n):
+            r += np.int64(g[c] < ga)
+        g_out[r] = ga
+        j_out[r] = j[a]
+        rank_sum += r
+    return rank_sum == n * (n - 1) // 2
+
+
 @njit(cache=True)
 def _sort_row(g, j, n):
     """Sort g[:n] ascending, permuting j alike (insertion sort; argsort when long: a start
     with many coincident spheres has rows of thousands)."""
-    if n > 48:
+    if n > _SORT_SHORT:
         o = np.argsort(g[:n])
         g[:n] = g[:n][o]
         j[:n] = j[:n][o]
@@ -394,21 +425,22 @@ def history(n_local, gid, pair_offsets, pair_j, pair_lambda):
     Returns (hist_offsets int64 (n_local+1,), hist_gid int64, hist_lambda float64), partners in
     gid order. This is what travels with a particle when it migrates.
     """
-    hist_offsets = np.zeros(n_local + 1, dtype=np.int64)
-    n = 0
-    for e in range(pair_offsets[n_local]):
-        if pair_lambda[e] > 0.0:
-            n += 1
-    hist_gid = np.empty(n, dtype=np.int64)
-    hist_lambda = np.empty(n)
+    # every entry is written at the next free place, and kept (pos advances) when lambda > 0:
+    # no branch to mispredict (about a third of a packing's entries are contacts)
+    n_pairs = pair_offsets[n_local]
+    hist_offsets = np.empty(n_local + 1, dtype=np.int64)
+    hist_gid = np.empty(n_pairs, dtype=np.int64)
+    hist_lambda = np.empty(n_pairs)
+    hist_offsets[0] = 0
     pos = 0
     for i in range(n_local):
         for e in range(pair_offsets[i], pair_offsets[i + 1]):
-            if pair_lambda[e] > 0.0:
-                hist_gid[pos] = gid[pair_j[e]]
-                hist_lambda[pos] = pair_lambda[e]
-                pos += 1
+            hist_gid[pos] = gid[pair_j[e]]
+            hist_lambda[pos] = pair_lambda[e]
+            pos += np.int64(pair_lambda[e] > 0.0)
         hist_offsets[i + 1] = pos
+    hist_gid = hist_gid[:pos].copy()
+    hist_lambda = hist_lambda[:pos].copy()
     return hist_offsets, hist_gid, hist_lambda
 
 
