@@ -396,6 +396,31 @@ def test_rank_sort_sorts_or_refuses_equal_keys():
     assert not neighbors._rank_sort(g, np.arange(4), 4, np.empty(4, np.int64), np.empty(4, np.int64))
 
 
+def test_history_keeps_the_partners_with_lambda_above_zero():
+    """A row's history: its partners' gids with lambda > 0, in row order (gid order), none with
+    lambda 0, negative or NaN; offsets per local sphere (rows with none, a last row that is
+    all history)."""
+    rng = np.random.default_rng(8)
+    n_local, n_total = 6, 9
+    gid = (rng.permutation(n_total) * 5 + 2).astype(np.int64)
+    lengths = [3, 0, 4, 2, 1, 3]
+    offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
+    pair_j = np.concatenate([rng.choice([k for k in range(n_total) if k != i], size=m, replace=False)
+                             for i, m in enumerate(lengths)]).astype(np.int32)
+    lam = np.array([0.5, 0.0, 2.0, 0.0, -1.0, np.nan, 1e-300, 0.0, 3.0, 0.0, 0.25, 0.7, 0.1])
+    h_off, h_gid, h_lam = neighbors.history(n_local, gid, offsets, pair_j, lam)
+    want_off, want_gid, want_lam = [0], [], []
+    for i in range(n_local):
+        for e in range(offsets[i], offsets[i + 1]):
+            if lam[e] > 0:
+                want_gid.append(int(gid[pair_j[e]]))
+                want_lam.append(lam[e])
+        want_off.append(len(want_gid))
+    assert h_off.tolist() == want_off == [0, 2, 2, 3, 4, 4, 7]
+    assert h_gid.tolist() == want_gid and h_lam.tolist() == want_lam
+    assert h_gid.dtype == np.int64 and h_lam.dtype == np.float64
+
+
 def test_build_rows_keeps_history():
     rng = np.random.default_rng(3)
     dim, n, n_local = 2, 40, 30
