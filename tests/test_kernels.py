@@ -303,6 +303,14 @@ def test_exact_sum_columns_match_per_value_adds():
     # near the range, one sign: more than 2**13 of these overflow a float partial sum's 53 bits
     # unless it is moved to the integers every FLUSH_EVERY values
     vals[:, 11] = exactsum.RANGE * rng.uniform(0.98, 0.99, size=n)
+    # columns cut into their lower bins only (all values below the bound of bin 1, or of bin
+    # 0), with values at the bounds and just below them in some blocks
+    vals[:, 12] = rng.uniform(-1.0, 1.0, size=n) * 10.0 ** rng.uniform(-20, 0.6, size=n)
+    vals[:, 13] = rng.uniform(-1.0, 1.0, size=n) * 10.0 ** rng.uniform(-20, 12.9, size=n)
+    for col, bound in ((12, exactsum._BELOW_BIN1), (13, exactsum._BELOW_BIN0)):
+        for t, v in enumerate((bound, np.nextafter(bound, 0.0), -np.nextafter(bound, 0.0),
+                               2.0 * bound, -bound)):
+            vals[(t + 1) * 3 * exactsum.COLUMN_BLOCK + 5, col] = v
     for m in (1, exactsum.COLUMN_BLOCK - 1, exactsum.COLUMN_BLOCK, exactsum.COLUMN_BLOCK + 1, n):
         a, b = exactsum.new_accumulator(k), exactsum.new_accumulator(k)
         by_value(vals[:m], a)
@@ -310,7 +318,7 @@ def test_exact_sum_columns_match_per_value_adds():
         assert np.array_equal(a, b), m
     got = exactsum.values_all(b)
     assert np.isnan(got[6:9]).all() and got[4] == 0.0
-    for q in (0, 3, 10, 11, 14):
+    for q in (0, 3, 10, 11, 12, 13, 14):
         assert got[q] == exactsum.exact_sum(vals[:, q])
     assert got[9] == exactsum.exact_sum(vals[vals[:, 0] > 0.0, 9])
     # accumulators of any split of the rows add up to the whole, as an allreduce does

@@ -137,9 +137,13 @@ def normalize_row(a):
         a[k - 1] += c
 
 
-# The items of one block of ``columns``: a power of two (an item's slot is i & (BLOCK - 1)); the
-# block of 7 quantities with its pieces and partial sums takes 20 KiB, inside the L1 cache.
-COLUMN_BLOCK = 128
+# The items of one block of ``columns``: a power of two (an item's slot is i & (BLOCK - 1)). Each
+# column costs a few calls, so longer blocks are cheaper a value (L-BFGS's dots, 17 quantities:
+# 128 -> 256 items 14.0 -> 13.0 ns a sphere in 2D), until the buffer leaves the L2 cache (17
+# quantities x 256 items: 82 KiB). The rows are padded: at 512 items a row is 4 KiB long, and
+# an item's values, one a row, fell into one cache set (dots 3 times as slow).
+COLUMN_BLOCK = 256
+_ROW_PAD = 8
 
 
 @njit(cache=True, inline="always")
@@ -160,14 +164,14 @@ def columns(acc):
     The block's sum is called from the kernel's loop: an inlined helper that took the buffer
     and called it would cost reference counts at every item (docs/benchmarks.md, "Exact sums by
     columns"). One float64 array, not a tuple, for the same reason: shape (2 n_q + NBINS + 1,
-    COLUMN_BLOCK), n_q = acc.shape[0]: rows [0, n_q) the block's values by quantity, then
+    COLUMN_BLOCK + _ROW_PAD), n_q = acc.shape[0]: rows [0, n_q) the block's values by quantity, then
     NBINS + 1 rows for a column's pieces (``_cut_column``), then n_q rows whose first NBINS + 2
     columns are the partial sums as ``staging``'s rows. A quantity not put for some items
     counts zeros for them. The accumulator is the same, bit for bit, as per-value ``add`` calls
     give: every value is cut the same way, and every piece and partial sum is exact, in
     whatever order they are added."""
     n_q = acc.shape[0]
-    return np.zeros((2 * n_q + NBINS + 1, COLUMN_BLOCK))
+    return np.zeros((2 * n_q + NBINS + 1, COLUMN_BLOCK + _ROW_PAD))
 
 
 @njit(cache=True, inline="always")
@@ -188,6 +192,31 @@ def add_block(cols, acc):
     add_columns(cols, acc, COLUMN_BLOCK)
 
 
+# A column whose values are all below a bound has zero pieces in the bins above it: q_k =
+# (r + M_k) - M_k is 0 when |r| < ulp(M_k) / 2 (half that bound here, for a margin), and r then
+# passes on unchanged (r - 0 = r, also for -0.0). Such a column is cut into its lower bins only,
+# and its upper bins' partial sums, which would add zeros, are left as they are: the same bits.
+# Most columns are small (dot products of steps and forces: bins 2-3 only; positions: bins 1-3).
+_BELOW_BIN1 = ULP1 / 4.0
+_BELOW_BIN0 = ULP0 / 4.0
+
+
+@njit(cache=True, error_model="numpy", fastmath={"reassoc"})
+def _magnitudes(column, count):
+    """(number of nonzero values, number at or above _BELOW_BIN1, number at or above
+    _BELOW_BIN0) in column[:count]; NaN counts as large. Counts held as floats: whole numbers,
+    any order of their sums exact, so vectorised."""
+    nonzero = 0.0
+    large1 = 0.0
+    large0 = 0.0
+    for t in range(count):
+        a = abs(column[t])
+        nonzero += 0.0 if a == 0.0 else 1.0
+        large1 += 0.0 if a < _BELOW_BIN1 else 1.0
+        large0 += 0.0 if a < _BELOW_BIN0 else 1.0
+    return nonzero, large1, large0
+
+
 @njit(cache=True, error_model="numpy")
 def _cut_column(column, count, pieces):
     """pieces[k, :count] = bin k's pieces of column[:count] (``cut``), and in row NBINS a 1 for
@@ -205,51 +234,91 @@ def _cut_column(column, count, pieces):
 
 
 @njit(cache=True, error_model="numpy")
-def _any_nonzero(column, count):
-    """Whether column[:count] holds a value other than +-0."""
+def _cut_column_below_bin0(column, count, pieces):
+    """``_cut_column``'s rows 1-3 for a column whose values are all below _BELOW_BIN0 (row 0's
+    pieces would be zeros, and none is out of range)."""
     for t in range(count):
-        if column[t] != 0.0:
-            return True
-    return False
+        x = column[t]
+        q1 = (x + M1) - M1
+        r = x - q1
+        q2 = (r + M2) - M2
+        r = r - q2
+        pieces[1, t] = q1
+        pieces[2, t] = q2
+        pieces[3, t] = (r + M3) - M3
+
+
+@njit(cache=True, error_model="numpy")
+def _cut_column_below_bin1(column, count, pieces):
+    """``_cut_column``'s rows 2-3 for a column whose values are all below _BELOW_BIN1."""
+    for t in range(count):
+        x = column[t]
+        q2 = (x + M2) - M2
+        r = x - q2
+        pieces[2, t] = q2
+        pieces[3, t] = (r + M3) - M3
 
 
 # reassociation allowed: each row's pieces are multiples of its bin's ulp, at most 2**41 of them
 # each, so any partial sum of up to FLUSH_EVERY of them is exact, in any order (and the count
 # row holds small integers): the sums are the same bits as in order, and vectorised
 @njit(cache=True, error_model="numpy", fastmath={"reassoc"})
-def _sum_pieces(pieces, count, partial):
-    """partial[k] += sum_t pieces[k, t] (t < count) for k = 0 .. NBINS."""
+def _sum_pieces(pieces, count, partial, first):
+    """partial[k] += sum_t pieces[k, t] (t < count) for k = first .. NBINS - 1, and for row
+    NBINS (the out-of-range count) if first == 0."""
     s0 = 0.0
     s1 = 0.0
     s2 = 0.0
     s3 = 0.0
     s4 = 0.0
-    for t in range(count):
-        s0 += pieces[0, t]
-        s1 += pieces[1, t]
-        s2 += pieces[2, t]
-        s3 += pieces[3, t]
-        s4 += pieces[4, t]
-    partial[0] += s0
-    partial[1] += s1
+    if first == 0:
+        for t in range(count):
+            s0 += pieces[0, t]
+            s1 += pieces[1, t]
+            s2 += pieces[2, t]
+            s3 += pieces[3, t]
+            s4 += pieces[4, t]
+        partial[0] += s0
+        partial[4] += s4
+    elif first == 1:
+        for t in range(count):
+            s1 += pieces[1, t]
+            s2 += pieces[2, t]
+            s3 += pieces[3, t]
+    else:
+        for t in range(count):
+            s2 += pieces[2, t]
+            s3 += pieces[3, t]
+    if first <= 1:
+        partial[1] += s1
     partial[2] += s2
     partial[3] += s3
-    partial[4] += s4
 
 
 @njit(cache=True)
 def add_columns(cols, acc, count):
     """Sum the first ``count`` items of the block into the quantities' partial sums (moved
     into ``acc`` before they could hold more than FLUSH_EVERY pieces) and clear them. A
-    quantity whose values are all zeros (one not put in this pass) adds nothing."""
+    quantity whose values are all zeros (one not put in this pass) adds nothing; one whose
+    values are all small is cut into its lower bins only (the same pieces: the upper ones are
+    zeros)."""
     n_q = acc.shape[0]
     pieces = cols[n_q:n_q + NBINS + 1]
     for q in range(n_q):
-        if not _any_nonzero(cols[q], count):
+        nonzero, large1, large0 = _magnitudes(cols[q], count)
+        if nonzero == 0.0:
             continue
-        _cut_column(cols[q], count, pieces)
+        if large1 == 0.0:
+            first = 2
+            _cut_column_below_bin1(cols[q], count, pieces)
+        elif large0 == 0.0:
+            first = 1
+            _cut_column_below_bin0(cols[q], count, pieces)
+        else:
+            first = 0
+            _cut_column(cols[q], count, pieces)
         r = n_q + NBINS + 1 + q
-        _sum_pieces(pieces, count, cols[r])
+        _sum_pieces(pieces, count, cols[r], first)
         for t in range(count):
             cols[q, t] = 0.0
         cols[r, NBINS + 1] += count
