@@ -264,35 +264,14 @@ def _cut_column_below_bin1(column, count, pieces):
 # row holds small integers): the sums are the same bits as in order, and vectorised
 @njit(cache=True, error_model="numpy", fastmath={"reassoc"})
 def _sum_pieces(pieces, count, partial, first):
-    """partial[k] += sum_t pieces[k, t] (t < count) for k = first .. NBINS - 1, and for row
-    NBINS (the out-of-range count) if first == 0."""
-    s0 = 0.0
-    s1 = 0.0
-    s2 = 0.0
-    s3 = 0.0
-    s4 = 0.0
-    if first == 0:
+    """partial[k] += sum_t pieces[k, t] (t < count) for the rows k = first .. NBINS - 1 that
+    the cut filled, and row NBINS (the out-of-range count) after a full cut (first == 0)."""
+    last = NBINS + 1 if first == 0 else NBINS
+    for k in range(first, last):
+        s = 0.0
         for t in range(count):
-            s0 += pieces[0, t]
-            s1 += pieces[1, t]
-            s2 += pieces[2, t]
-            s3 += pieces[3, t]
-            s4 += pieces[4, t]
-        partial[0] += s0
-        partial[4] += s4
-    elif first == 1:
-        for t in range(count):
-            s1 += pieces[1, t]
-            s2 += pieces[2, t]
-            s3 += pieces[3, t]
-    else:
-        for t in range(count):
-            s2 += pieces[2, t]
-            s3 += pieces[3, t]
-    if first <= 1:
-        partial[1] += s1
-    partial[2] += s2
-    partial[3] += s3
+            s += pieces[k, t]
+        partial[k] += s
 
 
 @njit(cache=True)
