@@ -17,10 +17,25 @@ entry, which costs one recompilation later, never a wrong load.
 
 import hashlib
 
+from llvmlite import ir
 from numba import cfunc, njit  # noqa: F401  (the package's one import of them)
-from numba.core import caching
+from numba.core import caching, types
+from numba.extending import intrinsic
 
-__all__ = ["njit", "cfunc", "data_name"]
+__all__ = ["njit", "cfunc", "data_name", "float_bits"]
+
+
+@intrinsic
+def float_bits(typingctx, x):
+    """The bit pattern of a float64 as an int64 (``x.view(np.int64)`` of a scalar, which numba
+    lacks): a reinterpretation, no instruction, and vectorisable in a loop."""
+    if x != types.float64:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(64))
+
+    return types.int64(types.float64), codegen
 
 
 def data_name(index_name, key):

@@ -27,7 +27,7 @@ overflow flag per quantity. Accumulators from several ranks combine by integer a
 
 import numpy as np
 
-from mpipack.jit import njit
+from mpipack.jit import float_bits, njit
 
 NBINS = 4
 _E0 = 97
@@ -150,7 +150,7 @@ _ROW_PAD = 8
 def columns(acc):
     """A staging buffer for adding, item after item (a kernel's spheres), one value to each of
     several quantities of ``acc``, summed down each quantity's column a block of COLUMN_BLOCK
-    items at a time: cutting a column into its bins' pieces and adding them up are loops over
+    items at a time: cutting a column into its bins' pieces and adding them up is one loop over
     contiguous values, which the compiler turns into vector instructions (per-value ``add``
     calls are not). The same three calls as ``staging``::
 
@@ -163,15 +163,15 @@ def columns(acc):
 
     The block's sum is called from the kernel's loop: an inlined helper that took the buffer
     and called it would cost reference counts at every item (docs/benchmarks.md, "Exact sums by
-    columns"). One float64 array, not a tuple, for the same reason: shape (2 n_q + NBINS + 1,
-    COLUMN_BLOCK + _ROW_PAD), n_q = acc.shape[0]: rows [0, n_q) the block's values by quantity, then
-    NBINS + 1 rows for a column's pieces (``_cut_column``), then n_q rows whose first NBINS + 2
-    columns are the partial sums as ``staging``'s rows. A quantity not put for some items
-    counts zeros for them. The accumulator is the same, bit for bit, as per-value ``add`` calls
-    give: every value is cut the same way, and every piece and partial sum is exact, in
-    whatever order they are added."""
+    columns"). One float64 array, not a tuple, for the same reason: shape (n_q + 1,
+    COLUMN_BLOCK + _ROW_PAD), n_q = acc.shape[0]: rows [0, n_q) the block's values by quantity,
+    then one row whose column q holds how many of quantity q's bins its blocks have needed so
+    far (``add_columns``). A quantity not put for some items counts zeros for them. The
+    accumulator is the same, bit for bit, as per-value ``add`` calls give: every value is cut
+    the same way, and its pieces are added as integers (``_cut_sum_below_bin1``), exactly, in
+    whatever order."""
     n_q = acc.shape[0]
-    return np.zeros((2 * n_q + NBINS + 1, COLUMN_BLOCK + _ROW_PAD))
+    return np.zeros((n_q + 1, COLUMN_BLOCK + _ROW_PAD))
 
 
 @njit(cache=True, inline="always")
@@ -195,126 +195,124 @@ def add_block(cols, acc):
 # A column whose values are all below a bound has zero pieces in the bins above it: q_k =
 # (r + M_k) - M_k is 0 when |r| < ulp(M_k) / 2 (half that bound here, for a margin), and r then
 # passes on unchanged (r - 0 = r, also for -0.0). Such a column is cut into its lower bins only,
-# and its upper bins' partial sums, which would add zeros, are left as they are: the same bits.
-# Most columns are small (dot products of steps and forces: bins 2-3 only; positions: bins 1-3).
+# the same pieces. Most columns are small (dot products of steps and forces: bins 2-3 only;
+# positions: bins 1-3).
 _BELOW_BIN1 = ULP1 / 4.0
 _BELOW_BIN0 = ULP0 / 4.0
-
-
-@njit(cache=True, error_model="numpy", fastmath={"reassoc"})
-def _magnitudes(column, count):
-    """(number of nonzero values, number at or above _BELOW_BIN1, number at or above
-    _BELOW_BIN0) in column[:count]; NaN counts as large. Counts held as floats: whole numbers,
-    any order of their sums exact, so vectorised."""
-    nonzero = 0.0
-    large1 = 0.0
-    large0 = 0.0
-    for t in range(count):
-        a = abs(column[t])
-        nonzero += 0.0 if a == 0.0 else 1.0
-        large1 += 0.0 if a < _BELOW_BIN1 else 1.0
-        large0 += 0.0 if a < _BELOW_BIN0 else 1.0
-    return nonzero, large1, large0
+# The pieces are added as integers, in units of their bins' ulps: y = r + M_k lies in M_k's
+# binade (|r| < M_k / 3), where a float64's bit pattern counts ulps, so the piece
+# q_k = y - M_k is bits(y) - bits(M_k) ulps. Integer sums are exact in any order (no float
+# reassociation, which could also fold (r + M) - M into r), and vectorise.
+_BITS_M0, _BITS_M1, _BITS_M2, _BITS_M3 = (int(v) for v in _M.view(np.int64))
 
 
 @njit(cache=True, error_model="numpy")
-def _cut_column(column, count, pieces):
-    """pieces[k, :count] = bin k's pieces of column[:count] (``cut``), and in row NBINS a 1 for
-    each out-of-range value (|x| >= RANGE, NaN, Inf), whose pieces are zeros. No reassociation
-    here: the cut relies on the exact order of its operations."""
+def _cut_sum_below_bin1(column, count):
+    """(sum of bin 2's pieces, sum of bin 3's, in ulps; the number of values not below
+    _BELOW_BIN1, NaN included) over column[:count]; the sums hold only if that number is 0."""
+    s2 = 0
+    s3 = 0
+    large = 0
+    for t in range(count):
+        x = column[t]
+        large += 0 if abs(x) < _BELOW_BIN1 else 1
+        y2 = x + M2
+        y3 = (x - (y2 - M2)) + M3
+        s2 += float_bits(y2) - _BITS_M2
+        s3 += float_bits(y3) - _BITS_M3
+    return s2, s3, large
+
+
+@njit(cache=True, error_model="numpy")
+def _cut_sum_below_bin0(column, count):
+    """``_cut_sum_below_bin1`` for the bins 1-3 and the bound _BELOW_BIN0."""
+    s1 = 0
+    s2 = 0
+    s3 = 0
+    large = 0
+    for t in range(count):
+        x = column[t]
+        large += 0 if abs(x) < _BELOW_BIN0 else 1
+        y1 = x + M1
+        r = x - (y1 - M1)
+        y2 = r + M2
+        y3 = (r - (y2 - M2)) + M3
+        s1 += float_bits(y1) - _BITS_M1
+        s2 += float_bits(y2) - _BITS_M2
+        s3 += float_bits(y3) - _BITS_M3
+    return s1, s2, s3, large
+
+
+@njit(cache=True, error_model="numpy")
+def _cut_sum(column, count):
+    """The sums of the four bins' pieces over column[:count] (``cut``), in ulps, and the number
+    of out-of-range values (|x| >= RANGE, NaN, Inf), whose pieces are zeros."""
+    s0 = 0
+    s1 = 0
+    s2 = 0
+    s3 = 0
+    bad = 0
     for t in range(count):
         x = column[t]
         ok = abs(x) < RANGE  # also False for NaN
-        q0, q1, q2, q3 = cut(x if ok else 0.0)
-        pieces[0, t] = q0
-        pieces[1, t] = q1
-        pieces[2, t] = q2
-        pieces[3, t] = q3
-        pieces[4, t] = 0.0 if ok else 1.0
-
-
-@njit(cache=True, error_model="numpy")
-def _cut_column_below_bin0(column, count, pieces):
-    """``_cut_column``'s rows 1-3 for a column whose values are all below _BELOW_BIN0 (row 0's
-    pieces would be zeros, and none is out of range)."""
-    for t in range(count):
-        x = column[t]
-        q1 = (x + M1) - M1
-        r = x - q1
-        q2 = (r + M2) - M2
-        r = r - q2
-        pieces[1, t] = q1
-        pieces[2, t] = q2
-        pieces[3, t] = (r + M3) - M3
-
-
-@njit(cache=True, error_model="numpy")
-def _cut_column_below_bin1(column, count, pieces):
-    """``_cut_column``'s rows 2-3 for a column whose values are all below _BELOW_BIN1."""
-    for t in range(count):
-        x = column[t]
-        q2 = (x + M2) - M2
-        r = x - q2
-        pieces[2, t] = q2
-        pieces[3, t] = (r + M3) - M3
-
-
-# reassociation allowed: each row's pieces are multiples of its bin's ulp, at most 2**41 of them
-# each, so any partial sum of up to FLUSH_EVERY of them is exact, in any order (and the count
-# row holds small integers): the sums are the same bits as in order, and vectorised
-@njit(cache=True, error_model="numpy", fastmath={"reassoc"})
-def _sum_pieces(pieces, count, partial, first):
-    """partial[k] += sum_t pieces[k, t] (t < count) for the rows k = first .. NBINS - 1 that
-    the cut filled, and row NBINS (the out-of-range count) after a full cut (first == 0)."""
-    last = NBINS + 1 if first == 0 else NBINS
-    for k in range(first, last):
-        s = 0.0
-        for t in range(count):
-            s += pieces[k, t]
-        partial[k] += s
+        bad += 0 if ok else 1
+        x = x if ok else 0.0
+        y0 = x + M0
+        r = x - (y0 - M0)
+        y1 = r + M1
+        r = r - (y1 - M1)
+        y2 = r + M2
+        y3 = (r - (y2 - M2)) + M3
+        s0 += float_bits(y0) - _BITS_M0
+        s1 += float_bits(y1) - _BITS_M1
+        s2 += float_bits(y2) - _BITS_M2
+        s3 += float_bits(y3) - _BITS_M3
+    return s0, s1, s2, s3, bad
 
 
 @njit(cache=True)
 def add_columns(cols, acc, count):
-    """Sum the first ``count`` items of the block into the quantities' partial sums (moved
-    into ``acc`` before they could hold more than FLUSH_EVERY pieces) and clear them. A
-    quantity whose values are all zeros (one not put in this pass) adds nothing; one whose
-    values are all small is cut into its lower bins only (the same pieces: the upper ones are
-    zeros)."""
+    """Add the first ``count`` items of the block into ``acc`` and clear them. Each quantity is
+    cut into as few bins as its values need (the same pieces: the upper ones are zeros): first
+    the bins its earlier blocks needed (row n_q of ``cols``), more if a value is too large."""
     n_q = acc.shape[0]
-    pieces = cols[n_q:n_q + NBINS + 1]
     for q in range(n_q):
-        nonzero, large1, large0 = _magnitudes(cols[q], count)
-        if nonzero == 0.0:
-            continue
-        if large1 == 0.0:
-            first = 2
-            _cut_column_below_bin1(cols[q], count, pieces)
-        elif large0 == 0.0:
-            first = 1
-            _cut_column_below_bin0(cols[q], count, pieces)
-        else:
-            first = 0
-            _cut_column(cols[q], count, pieces)
-        r = n_q + NBINS + 1 + q
-        _sum_pieces(pieces, count, cols[r], first)
+        column = cols[q]
+        bins = cols[n_q, q]  # 0: bins 2-3, 1: bins 1-3, 2: all
+        if bins == 0.0:
+            s2, s3, large = _cut_sum_below_bin1(column, count)
+            if large == 0:
+                acc[q, 2] += s2
+                acc[q, 3] += s3
+            else:
+                bins = 1.0
+        if bins == 1.0:
+            s1, s2, s3, large = _cut_sum_below_bin0(column, count)
+            if large == 0:
+                acc[q, 1] += s1
+                acc[q, 2] += s2
+                acc[q, 3] += s3
+            else:
+                bins = 2.0
+        if bins == 2.0:
+            s0, s1, s2, s3, bad = _cut_sum(column, count)
+            acc[q, 0] += s0
+            acc[q, 1] += s1
+            acc[q, 2] += s2
+            acc[q, 3] += s3
+            acc[q, NBINS] += bad
+        cols[n_q, q] = bins
+        normalize_row(acc[q])  # (the ulps of a block's bin add to less than 2**50)
         for t in range(count):
-            cols[q, t] = 0.0
-        cols[r, NBINS + 1] += count
-        if cols[r, NBINS + 1] > FLUSH_EVERY - COLUMN_BLOCK:
-            _move_row(cols, r, acc, q)
+            column[t] = 0.0
 
 
 @njit(cache=True)
 def flush_columns(cols, acc, n_items):
-    """Sum the last, partial block (``n_items`` items put in all) and move every partial sum
-    into ``acc`` (call once at the end)."""
+    """Sum the last, partial block (``n_items`` items put in all; call once at the end)."""
     rest = n_items & (COLUMN_BLOCK - 1)
     if rest > 0:
         add_columns(cols, acc, rest)
-    n_q = acc.shape[0]
-    for q in range(n_q):
-        _move_row(cols, n_q + NBINS + 1 + q, acc, q)
 
 
 @njit(cache=True)
