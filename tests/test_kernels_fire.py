@@ -206,7 +206,7 @@ def _every_entry_alone(n_local, offsets, pair_j):
     arithmetic of a pass over the whole of both rows of each pair."""
     n_pairs = int(offsets[n_local])
     return (offsets[:n_local + 1].copy(), np.arange(n_pairs, dtype=np.int64), pair_j[:n_pairs].copy(),
-            np.full(n_pairs, -1, dtype=np.int64), np.empty((n_pairs, kernels_fire.N_TERMS)))
+            np.full(n_pairs, -1, dtype=np.int64), np.empty((kernels_fire.N_TERMS, n_pairs)))
 
 
 @pytest.mark.parametrize("n, n_local", [(30, 30), (30, 17), (50, 50), (50, 33)])
@@ -281,6 +281,45 @@ def test_each_pair_once_gives_the_bits_of_both_rows(dim, form, case):
                 assert np.array_equal(a, b), (n_local, a, b)
 
 
+@pytest.mark.parametrize("form", ["S", "NS"])
+@pytest.mark.parametrize("dim", [1, 2, 3])
+def test_gradient_pass_moves_as_the_full_pass(dim, form):
+    """L-BFGS's gradient pass (a1 = 1, a2 = 0, no dual step: the kernel with gradient_pass)
+    leaves the bits of the full pass with the same coefficients in X^{n+1} = X^n - grad L_rho,
+    lambda, |X^n|^2, the largest move and overlap and the active count, over the half list and
+    over whole rows, without reading X^{n-1} (NaN here); it sums nothing else."""
+    rng = np.random.default_rng(zlib.crc32(f"grad-{dim}-{form}".encode()))
+    n = 30
+    x, diam = random_cloud(rng, n, dim)
+    lam_full = random_lambda(rng, form, x, diam)
+    gid = rng.permutation(n).astype(np.int64)
+    xbar = x.mean(axis=0)
+    kern = kernels_fire.fire_al_step(form, dim)
+    coeffs = (1.0, 0.0, 1.0, 0.3, 0.0, 0.7, True, True, 0.0)  # a1 .. vmax: the stiff phase's gradient
+    for n_local in (n, 17):
+        offsets, pair_j = rows_complete(n_local, n, gid)
+        owner = np.repeat(np.arange(n_local), np.diff(offsets))
+        lam0 = lam_full[owner, pair_j].copy()
+        for pairs in (half_list(n_local, gid, offsets, pair_j, lam0), kernels_fire.WHOLE_ROWS):
+            out = []
+            for gradient_pass, x_prev in ((False, x + 0.05 * rng.normal(size=x.shape)), (True, np.full_like(x, np.nan))):
+                lam = lam0.copy()
+                x_new = np.full_like(x, np.nan)
+                acc = exactsum.new_accumulator(dim + kernels_fire.N_ACC)
+                maxima = np.zeros(kernels_fire.N_MAX)
+                active = kern(x, x_prev, x_new, n_local, diam, offsets, pair_j, lam, pairs, *no_walls(n_local), xbar,
+                              CENTRE, *coeffs, True, acc, maxima, gradient_pass)
+                out.append((x_new[:n_local], lam, acc, maxima, active))
+            full, grad = out
+            assert np.isfinite(grad[0]).all() and not np.array_equal(grad[0], x[:n_local])
+            assert np.array_equal(full[0], grad[0]) and np.array_equal(full[1], grad[1]) and full[4] == grad[4]
+            xx2 = dim + kernels_fire.ACC_XX2
+            assert np.array_equal(full[2][xx2], grad[2][xx2])
+            assert not grad[2][np.arange(dim + kernels_fire.N_ACC) != xx2].any()
+            for m in (kernels_fire.MAX_STEP2, kernels_fire.MAX_OVERLAP):
+                assert full[3][m] == grad[3][m]
+
+
 def test_dense_rows_get_no_half_list():
     """Rows of more than HALF_LIST_MAX_ROW entries a sphere (a dense start's first pass) are
     walked whole: no half list, whose memory would outgrow the rows' own guard."""
@@ -291,4 +330,4 @@ def test_dense_rows_get_no_half_list():
     assert kernels_fire.pair_work(n, gid, offsets, pair_j, lam) is kernels_fire.WHOLE_ROWS
     offsets, pair_j = rows_complete(n - 4, n - 4, gid)
     work = kernels_fire.pair_work(n - 4, gid, offsets, pair_j, lam[:offsets[n - 4]])
-    assert work[0].shape == (n - 3,) and work[4].shape == (offsets[n - 4], kernels_fire.N_TERMS)
+    assert work[0].shape == (n - 3,) and work[4].shape == (kernels_fire.N_TERMS, offsets[n - 4])

@@ -167,13 +167,11 @@ calls long enough to take about ``target`` seconds):
                   beta = OMEGA c_b at the start's c_b), no reduction
     fire_nodual   the same pass without the dual step (update_lambda False)
     dual          fire - fire_nodual: what the dual step costs inside the pass (it is fused)
-    fire_nosums   the fire pass without its exact sums but |X^n|^2 (all_sums False)
-    exact_sums    fire - fire_nosums: what the pass's exact (binned) sums cost
     fire_norows   the fire pass over empty pair rows (every offset 0, no half list): the per-sphere part
     pair_loop     fire - fire_norows: the pair rows' part of the pass
     alm           the multiplier (ALM) step: one pass with the penalty off, beta = c_b
-    grad          L-BFGS's gradient pass (the kernel, all_sums False, the stiff phase's
-                  coefficients)
+    grad          L-BFGS's gradient pass (the kernel as a gradient pass, the stiff phase's
+                  coefficients: no X^{n-1}, of the sums only |X^n|^2, no gain or row)
     dots          ``kernels.lbfgs.dots``: the gradient's dots with the 2m + 1 memory slots
     direction     ``kernels.lbfgs.direction`` with every memory slot in use (its worst case)
     reduce        the L-BFGS iteration's ONE allreduce (its exact sums, maxima, counts)
@@ -197,11 +195,13 @@ pair_j int32 4, offsets int64 8; the neighbours' x_j and d_j, gathered in cell o
 taken to come from cache, so these are the least traffic, STREAM's convention: a write
 counted once):
 
-    fire, alm, grad   sphere 24 b + 16  (x, x_prev, x_new written, d_i, offset)
-                      entry  74: the half list's entries (half of them: entry, partner and
-                      mirror 20, lambda read 8 and written to both entries 16, the three
-                      terms written to both 48), then every entry's pair_j and terms read
-                      (28); fire_nodual and grad (no dual step) 66
+    fire, alm         sphere 24 b + 16  (x, x_prev, x_new written, d_i, offset)
+                      entry  54 + 16 b: the half list's entries (half of them: entry, partner
+                      and mirror 20, lambda read 8 and written to both entries 16, the b + 2
+                      terms written to both 16 (b + 2)), then every entry's terms read
+                      (8 (b + 2)); fire_nodual (no dual step) 46 + 16 b
+    grad              sphere 16 b + 16 (x, x_new written, d_i, offset); entry 14 + 16 b (no
+                      dual step, the force's b terms only)
     dots              sphere 8 b (2 + K), K = 2m + 1 memory slots (x, x_new, every slot)
     direction         sphere 8 b 17 (x, x_new, 11 slots read; 3 slots and x_new written)
     metrics           sphere 8 b + 44 (x, d, gid, offset; pressure, contacts, |g_i| written)
@@ -297,9 +297,9 @@ def traffic_bytes(dim, m):
     """(bytes per sphere, bytes per pair entry, bytes per contact row) of each phase (PHASES_DOC)."""
     k = 2 * m + 1
     return {
-        "fire": (24 * dim + 16, 74, 0), "fire_nodual": (24 * dim + 16, 66, 0),
-        "fire_nosums": (24 * dim + 16, 74, 0), "fire_norows": (24 * dim + 16, 0, 0),
-        "alm": (24 * dim + 16, 74, 0), "grad": (24 * dim + 16, 66, 0),
+        "fire": (24 * dim + 16, 54 + 16 * dim, 0), "fire_nodual": (24 * dim + 16, 46 + 16 * dim, 0),
+        "fire_norows": (24 * dim + 16, 0, 0),
+        "alm": (24 * dim + 16, 54 + 16 * dim, 0), "grad": (16 * dim + 16, 14 + 16 * dim, 0),
         "dots": (8 * dim * (2 + k), 0, 0), "direction": (8 * dim * 17, 0, 0),
         "metrics": (8 * dim + 44, 12, 0), "fit_step": (32 * dim + 16, 0, 72),
     }
@@ -358,26 +358,26 @@ def phases_case(comm, dim, n, run_iters=None, repeats=5, target=0.3, fit_steps=5
     from mpipack.kernels import fire as kernels_fire
     pairs = [kernels_fire.pair_work(nl, st.gid, st.pair_offsets, st.pair_j, st.pair_lambda)]
 
-    def kernel_call(c, update, all_sums):
+    def kernel_call(c, update, gradient_pass=False):
         def call():
             red.begin()
-            kern(st.x, st.x_prev, st.x_new, nl, st.diam, st.pair_offsets, st.pair_j, st.pair_lambda, pairs[0], st.walls,
-                 st.wall_lambda, solver.xbar, solver.pot, *c, update, red.acc("step"), red.maxima("step"), all_sums)
+            # (a gradient pass reads no X^{n-1}: x_prev is x, as ``FireAL.lbfgs_iteration`` has it)
+            kern(st.x, st.x if gradient_pass else st.x_prev, st.x_new, nl, st.diam, st.pair_offsets, st.pair_j, st.pair_lambda, pairs[0], st.walls,
+                 st.wall_lambda, solver.xbar, solver.pot, *c, update, red.acc("step"), red.maxima("step"), gradient_pass)
         return call
 
     sec = {}
-    sec["fire"] = time_it(kernel_call(coeffs["fire"], True, True))
-    sec["fire_nodual"] = time_it(kernel_call(coeffs["fire"], False, True))
-    sec["fire_nosums"] = time_it(kernel_call(coeffs["fire"], True, False))
+    sec["fire"] = time_it(kernel_call(coeffs["fire"], True))
+    sec["fire_nodual"] = time_it(kernel_call(coeffs["fire"], False))
     offsets, work = st.pair_offsets, pairs[0]
     st.pair_offsets, pairs[0] = np.zeros_like(offsets), kernels_fire.WHOLE_ROWS
     try:
-        sec["fire_norows"] = time_it(kernel_call(coeffs["fire"], True, True))
+        sec["fire_norows"] = time_it(kernel_call(coeffs["fire"], True))
     finally:
         st.pair_offsets, pairs[0] = offsets, work
-    sec["alm"] = time_it(kernel_call(coeffs["alm"], True, True))
+    sec["alm"] = time_it(kernel_call(coeffs["alm"], True))
     st.pair_lambda[:] = lam0
-    sec["grad"] = time_it(kernel_call(coeffs["grad"], True, False))
+    sec["grad"] = time_it(kernel_call(coeffs["grad"], True, gradient_pass=True))
     st.pair_lambda[:] = lam0
     # the L-BFGS memory: the run's, or zeros of its shape (a run that ended before L-BFGS)
     lb = sched.lbfgs
@@ -401,7 +401,6 @@ def phases_case(comm, dim, n, run_iters=None, repeats=5, target=0.3, fit_steps=5
     sec["two_loop"] = time_it(two_loop) - time_it(lambda: copy.deepcopy(lb))
     sec["lbfgs"] = sec["grad"] + sec["dots"] + sec["direction"] + sec["reduce"] + sec["two_loop"]
     sec["dual"] = sec["fire"] - sec["fire_nodual"]
-    sec["exact_sums"] = sec["fire"] - sec["fire_nosums"]
     sec["pair_loop"] = sec["fire"] - sec["fire_norows"]
     fig_m = {}
 
@@ -443,7 +442,7 @@ def phases_case(comm, dim, n, run_iters=None, repeats=5, target=0.3, fit_steps=5
     }
 
 
-PHASE_ORDER = ("fire", "fire_nodual", "dual", "fire_nosums", "exact_sums", "fire_norows", "pair_loop", "alm",
+PHASE_ORDER = ("fire", "fire_nodual", "dual", "fire_norows", "pair_loop", "alm",
                "grad", "dots", "direction", "reduce", "two_loop", "lbfgs", "metrics", "fit_step", "iteration")
 
 

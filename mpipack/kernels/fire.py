@@ -31,7 +31,8 @@ list: a pair of two local spheres appears in both rows) and writes them to both 
 the second sums each sphere's row of terms in the row's partner-gid order, as a pass over the
 whole rows would, so the bits do not depend on the partition (nor on the half list), and each
 pair's arithmetic (its constraint, the dual step, the division by d_ij^p, the branches) is done
-once instead of twice (``mpipack bench --phases``: docs/benchmarks.md).
+once instead of twice (``mpipack bench --phases``: docs/benchmarks.md). The terms are the
+force's components, not its factor g: the second half then reads no partner position.
 
 Reduced figures (block "step" of the exact sums, block "step" of the maxima):
     exact   sum X^{n+1} (b rows), sum |X^{n+1}-X^n|^2, sum |X^n|^2, power sum G.V (V = X^n -
@@ -101,9 +102,11 @@ def _term(lam, phi, phin, g2, hess, unit, a3, a4, beta, lam_floor, clip, weighte
     return lam, m, gain, row
 
 
-# columns of the pair terms' buffer (``pairs``' terms): one row per row entry
-TERM_FORCE, TERM_GAIN, TERM_ROW = 0, 1, 2
-N_TERMS = 3
+# rows of the pair terms' buffer (``pairs``' terms), one column per row entry: the force
+# m grad_i phi_ij = -g (X_i - X_j) as b components (rows 0 .. b-1), the dual gain's and the
+# Gershgorin row's shares
+TERM_GAIN, TERM_ROW = 3, 4
+N_TERMS = 5
 
 
 @njit(cache=True, inline="always")
@@ -151,11 +154,12 @@ def _min_ratio(phi, r2, dd, min_ratio2):
 
 @njit(cache=True, inline="always")
 def _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e, half_j, half_f, terms, a3, a4,
-                beta, lam_floor, clip, weighted_dual, update_lambda):
+                beta, lam_floor, clip, weighted_dual, update_lambda, figures):
     """The first half of a pass over the half list (``pair_halves``): every pair's part once,
     written to the pair's entry and to its mirror (its entry in the partner's row): lambda,
-    and in ``terms`` g, the gain's and the row's shares. Both entries get the bits that a walk
-    of both whole rows would give them. Returns (entries with lambda > 0, the min ratio of
+    and in ``terms`` the force m grad_i phi_ij (its negative in the mirror), and with
+    ``figures`` the gain's and the row's shares. Both entries get the bits that a walk of both
+    whole rows would give them. Returns (entries with lambda > 0, the min ratio of
     ``_min_ratio``). Inlined with literal flags where the pass calls it, so that LLVM folds
     their branches."""
     n_active = 0
@@ -168,7 +172,7 @@ def _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e, 
         for k in range(np.uint64(half_offsets[i]), np.uint64(half_offsets[i + 1])):
             e = np.uint64(half_e[k])
             f = half_f[k]
-            _, _, _, lam, g, gain, row, phi, r2, dd = _pair(
+            d0, d1, d2, lam, g, gain, row, phi, r2, dd = _pair(
                 form, dim, x, xi0, xi1, xi2, di, np.uint64(half_j[k]), diam, pair_lambda[e], a3, a4, beta,
                 lam_floor, clip, weighted_dual, update_lambda)
             min_ratio2 = _min_ratio(phi, r2, dd, min_ratio2)
@@ -176,39 +180,55 @@ def _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e, 
             n_active += both if lam > 0.0 else 0
             if update_lambda:
                 pair_lambda[e] = lam
-            terms[e, TERM_FORCE] = g
-            terms[e, TERM_GAIN] = gain
-            terms[e, TERM_ROW] = row
+            # the partner's entry gets the opposite force: X_j - X_i = -(X_i - X_j) and
+            # g (-d) = -(g d) exactly
+            t0 = g * d0
+            t1 = g * d1
+            t2 = g * d2
+            terms[0, e] = t0
+            if dim > 1:
+                terms[1, e] = t1
+            if dim > 2:
+                terms[2, e] = t2
+            if figures:
+                terms[TERM_GAIN, e] = gain
+                terms[TERM_ROW, e] = row
             if f >= 0:
                 fu = np.uint64(f)
                 if update_lambda:
                     pair_lambda[fu] = lam
-                terms[fu, TERM_FORCE] = g
-                terms[fu, TERM_GAIN] = gain
-                terms[fu, TERM_ROW] = row
+                terms[0, fu] = -t0
+                if dim > 1:
+                    terms[1, fu] = -t1
+                if dim > 2:
+                    terms[2, fu] = -t2
+                if figures:
+                    terms[TERM_GAIN, fu] = gain
+                    terms[TERM_ROW, fu] = row
     return n_active, min_ratio2
 
 
 @njit(cache=True, inline="always")
-def _row_sums(dim, x, xi0, xi1, xi2, e0, e1, pair_j, terms):
+def _row_sums(dim, e0, e1, terms, figures):
     """The second half of a pass, for one sphere: its row's pair terms summed in the row's
-    (partner-gid) order, F_i = -sum_j g (X_i - X_j), the dual gain and the Gershgorin sum; as
-    (F_i as three scalars, gain, row)."""
+    (partner-gid) order, F_i = -sum_j g (X_i - X_j) as the terms hold them, and with
+    ``figures`` the dual gain and the Gershgorin sum; as (F_i as three scalars, gain, row)."""
     f0 = 0.0
     f1 = 0.0
     f2 = 0.0
     gain = 0.0
     row = 0.0
     for e in range(np.uint64(e0), np.uint64(e1)):
-        d0, d1, d2, r2 = separation(dim, x, xi0, xi1, xi2, np.uint64(pair_j[e]))
         # a zero term adds exact zeros (the force is never -0.0: it starts at +0.0 and
         # x - x = +0.0)
-        g = terms[e, TERM_FORCE]
-        gain += terms[e, TERM_GAIN]
-        row += terms[e, TERM_ROW]
-        f0 -= g * d0
-        f1 -= g * d1
-        f2 -= g * d2
+        f0 -= terms[0, e]
+        if dim > 1:
+            f1 -= terms[1, e]
+        if dim > 2:
+            f2 -= terms[2, e]
+        if figures:
+            gain += terms[TERM_GAIN, e]
+            row += terms[TERM_ROW, e]
     return f0, f1, f2, gain, row
 
 
@@ -244,7 +264,7 @@ def _whole_row(form, dim, x, xi0, xi1, xi2, di, e0, e1, pair_j, diam, pair_lambd
 @njit(cache=True, inline="always")
 def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair_j, pair_lambda,
                   pairs, walls, wall_lambda, xbar, pot, a1, a2, a3, a4, beta, lam_floor, clip,
-                  weighted_dual, vmax, update_lambda, acc, maxima, all_sums):
+                  weighted_dual, vmax, update_lambda, acc, maxima, gradient_pass):
     # form and dim are compile-time constants of each wrapper below: LLVM removes the dead
     # branches and keeps the coordinates in scalars (with small arrays indexed by a runtime
     # range(dim) loop the pass took 8 - 10% longer, 3D N = 2000 and 2D N = 8000 states)
@@ -272,20 +292,29 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
     if halves:
         if clip and weighted_dual and update_lambda:
             n_active, min_ratio2 = _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e,
-                                               half_j, half_f, terms, a3, a4, beta, lam_floor, True, True, True)
+                                               half_j, half_f, terms, a3, a4, beta, lam_floor, True, True, True,
+                                               True)
+        elif clip and weighted_dual and not gradient_pass:
+            n_active, min_ratio2 = _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e,
+                                               half_j, half_f, terms, a3, a4, beta, lam_floor, True, True, False,
+                                               True)
         elif clip and weighted_dual:
             n_active, min_ratio2 = _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e,
-                                               half_j, half_f, terms, a3, a4, beta, lam_floor, True, True, False)
+                                               half_j, half_f, terms, a3, a4, beta, lam_floor, True, True, False,
+                                               False)
         else:
             n_active, min_ratio2 = _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e,
                                                half_j, half_f, terms, a3, a4, beta, lam_floor, clip, weighted_dual,
-                                               update_lambda)
+                                               update_lambda, True)
     for i in range(n_local):
         xi0, xi1, xi2 = coordinates(dim, x, i)
         di = diam[i]
         e0, e1 = pair_offsets[i], pair_offsets[i + 1]
         if halves:
-            f0, f1, f2, gain, row = _row_sums(dim, x, xi0, xi1, xi2, e0, e1, pair_j, terms)
+            if gradient_pass:  # (the gain and row shares were not written)
+                f0, f1, f2, gain, row = _row_sums(dim, e0, e1, terms, False)
+            else:
+                f0, f1, f2, gain, row = _row_sums(dim, e0, e1, terms, True)
         else:
             f0, f1, f2, gain, row, n_row, min_ratio2 = _whole_row(
                 form, dim, x, xi0, xi1, xi2, di, e0, e1, pair_j, diam, pair_lambda, a3, a4, beta, lam_floor,
@@ -326,17 +355,19 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
         p0, p1, p2 = potential.pull(dim, pot, di, xi0, xi1, xi2, xb0, xb1, xb2)
         if gravity:
             exactsum.put(cols, dim + ACC_WPOT, i, potential.height_energy(dim, pot, di, xi0, xi1, xi2))
-        dd0, dx2, xx2, power, force2 = _coordinate(a1, a2, a3, xi0, x_prev[i, 0], p0, f0)
+        # (a gradient pass's a2 is 0: X^{n-1} is not read, a2 X^n adds the same zero)
+        xp0 = xi0 if gradient_pass else x_prev[i, 0]
+        dd0, dx2, xx2, power, force2 = _coordinate(a1, a2, a3, xi0, xp0, p0, f0)
         dd1 = 0.0
         dd2 = 0.0
         if dim > 1:
-            dd1, s_dx, s_xx, s_pw, s_f = _coordinate(a1, a2, a3, xi1, x_prev[i, 1], p1, f1)
+            dd1, s_dx, s_xx, s_pw, s_f = _coordinate(a1, a2, a3, xi1, xi1 if gradient_pass else x_prev[i, 1], p1, f1)
             dx2 += s_dx
             xx2 += s_xx
             power += s_pw
             force2 += s_f
         if dim > 2:
-            dd2, s_dx, s_xx, s_pw, s_f = _coordinate(a1, a2, a3, xi2, x_prev[i, 2], p2, f2)
+            dd2, s_dx, s_xx, s_pw, s_f = _coordinate(a1, a2, a3, xi2, xi2 if gradient_pass else x_prev[i, 2], p2, f2)
             dx2 += s_dx
             xx2 += s_xx
             power += s_pw
@@ -356,7 +387,7 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
             xn2 = xi2 + dd2
             x_new[i, 2] = xn2
         exactsum.put(cols, dim + ACC_XX2, i, xx2)
-        if all_sums:  # an L-BFGS gradient pass needs only |X^n|^2 of these (``kernels_qn``)
+        if not gradient_pass:  # an L-BFGS gradient pass needs only |X^n|^2 of these
             exactsum.put(cols, 0, i, xn0)
             if dim > 1:
                 exactsum.put(cols, 1, i, xn1)
@@ -387,44 +418,46 @@ _DOC = """One pass of the fire-al step for one form and dimension; see the modul
     (``kernels.potential``: grad W is X - xbar, or the weights under gravity, whose W / g is then
     summed into row b + ACC_WPOT of acc, in every pass),
     a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual, vmax, update_lambda, acc, maxima,
-    all_sums=True); all_sums False: of the exact sums only |X^n|^2 (an L-BFGS gradient pass).
+    gradient_pass=False). gradient_pass True, L-BFGS's gradient pass (a1 = 1, a2 = 0): X^{n-1}
+    is not read (x_prev may be x), of the exact sums only |X^n|^2, and of the maxima the gain
+    and the row are not computed (0 and a3).
     Shapes as ``kernels.multipliers_and_step``; acc int64 (b+N_ACC, exactsum.NBINS+1), added to;
     maxima float64 (N_MAX,), overwritten. Returns the number of row entries with lambda > 0.
     pairs: (half_offsets, half_e, half_j, half_f, terms), the rows' half list and a terms buffer
-    (n_pairs, N_TERMS), made with the rows (``pair_work``), or ``WHOLE_ROWS``.
+    (N_TERMS, n_pairs), made with the rows (``pair_work``), or ``WHOLE_ROWS``.
     """
 
 
 # error_model "numpy": no zero-division checks in the pair loop (every divisor is a diameter
 # or a guarded distance); the results are the same bits
 @njit(cache=True, error_model="numpy")
-def fire_s1(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(SMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_s1(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad=False):
+    return _fire_al_step(SMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_s2(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(SMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_s2(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad=False):
+    return _fire_al_step(SMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_s3(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(SMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_s3(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad=False):
+    return _fire_al_step(SMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns1(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(NONSMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_ns1(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad=False):
+    return _fire_al_step(NONSMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns2(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(NONSMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_ns2(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad=False):
+    return _fire_al_step(NONSMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns3(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums=True):
-    return _fire_al_step(NONSMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, sums)
+def fire_ns3(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad=False):
+    return _fire_al_step(NONSMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad)
 
 
 _STEPS = {("S", 1): fire_s1, ("S", 2): fire_s2, ("S", 3): fire_s3,
@@ -504,7 +537,7 @@ HALF_LIST_MAX_ROW = 24
 
 # the ``pairs`` of a pass that walks whole rows (no half list)
 WHOLE_ROWS = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int32),
-              np.zeros(0, dtype=np.int64), np.zeros((0, N_TERMS)))
+              np.zeros(0, dtype=np.int64), np.zeros((N_TERMS, 0)))
 
 
 def pair_work(n_local, gid, pair_offsets, pair_j, pair_lambda, max_row=HALF_LIST_MAX_ROW):
@@ -514,7 +547,7 @@ def pair_work(n_local, gid, pair_offsets, pair_j, pair_lambda, max_row=HALF_LIST
     if pair_offsets[n_local] > max_row * n_local:
         return WHOLE_ROWS
     halves = pair_halves(n_local, gid, pair_offsets, pair_j, pair_lambda)
-    return halves + (np.empty((int(pair_offsets[n_local]), N_TERMS)),)
+    return halves + (np.empty((N_TERMS, int(pair_offsets[n_local]))),)
 
 
 def fire_al_step(form, dim):

@@ -53,7 +53,7 @@ class Method:
         """Maxima the step kernel fills, in its row order."""
         return [("step2", 1), ("overlap", 1)]
 
-    def kernel_pass(self, solver, x_other, xbar, red, n_local=None, all_sums=True):
+    def kernel_pass(self, solver, x_other, xbar, red, n_local=None, gradient_pass=False):
         """One pass of the step kernel over the first n_local particles (default all local)
         into ``red``'s step blocks; returns the number of row entries with lambda > 0."""
         raise NotImplementedError
@@ -107,7 +107,7 @@ class PaperScheme(Method):
     update (2.10b) when lambda is not yet the current X's, then the position update; it takes
     the container's walls (``kernels.walls``) and the potential (``kernels.potential``)."""
 
-    def kernel_pass(self, solver, x_other, xbar, red, n_local=None, all_sums=True):
+    def kernel_pass(self, solver, x_other, xbar, red, n_local=None, gradient_pass=False):
         st = solver.state
         n_local = st.n_local if n_local is None else n_local
         return self.kernel(st.x, x_other, st.x_new, n_local, st.diam, st.pair_offsets, st.pair_j,

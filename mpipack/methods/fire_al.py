@@ -55,9 +55,9 @@ class FireAL(Method):
     def step_maxima(self):
         return super().step_maxima() + [("max_gain", 1), ("max_row", 1)]
 
-    def kernel_pass(self, solver, x_other, xbar, red, n_local=None, all_sums=True):
-        """all_sums False (the kernel as L-BFGS's gradient pass): of the exact sums only
-        |X^n|^2."""
+    def kernel_pass(self, solver, x_other, xbar, red, n_local=None, gradient_pass=False):
+        """gradient_pass True (the kernel as L-BFGS's gradient pass, ``kernels.fire``): of the
+        exact sums only |X^n|^2, no gain or row maxima, x_other not read."""
         st = solver.state
         n_local = st.n_local if n_local is None else n_local
         # the fire phase updates lambda every pass (its dual steps); the explosion is DAHA
@@ -72,7 +72,7 @@ class FireAL(Method):
         return self.kernel(st.x, x_other, st.x_new, n_local, st.diam, st.pair_offsets, st.pair_j,
                            st.pair_lambda, pairs, st.walls, st.wall_lambda, xbar, solver.pot, *self.coeffs, update,
                            red.acc("step"),
-                           red.maxima("step"), all_sums)
+                           red.maxima("step"), gradient_pass)
 
     def step_figures(self, red, fig):
         fig.update(power=red.value("power"), force2=red.value("force2"),
@@ -141,7 +141,7 @@ class FireAL(Method):
         k, n = lbfgs.slots(lb.m), st.n_local
         if st.qn is None or st.qn.shape[1] != k:
             st.qn = np.zeros((n, k, self.dim))
-        n_active = self.kernel_pass(solver, st.x_prev, solver.xbar, red, all_sums=False)  # x_new = X^n - g
+        n_active = self.kernel_pass(solver, st.x, solver.xbar, red, gradient_pass=True)  # x_new = X^n - g
         cap = lbfgs.TRUST * self.schedule.d
         head = lb.s["head"] if lb.s["stepped"] else -1
         clipped = kernels_lbfgs.dots(st.x, st.x_new, n, st.qn, head, cap, red.acc("qn"), red.maxima("qn"))
@@ -167,8 +167,7 @@ class FireAL(Method):
             "relative_change": math.sqrt(move2 / xx2) if xx2 > 0 else 0.0,
             "change2": move2,
             "max_step": math.sqrt(red.max("qn_step2")),
-            "power": 0.0, "force2": float(dots[-1]),
-            "max_gain": red.max("max_gain"), "max_row": red.max("max_row"),
+            "power": 0.0, "force2": float(dots[-1]),  # (a gradient pass has no gain or row)
         }
         solver.common_figures(red, fig)
         coef, y_slot, s_slot, _ = lb.direction(dots, red.value("qn_slope"), red.count("qn_clipped") > 0)
