@@ -90,7 +90,7 @@ def test_a_dual_step_of_gain_zero_changes_no_bit(dim, form):
             x_new = np.full_like(x, np.nan)
             acc = exactsum.new_accumulator(dim + kernels_fire.N_ACC)
             maxima = np.zeros(kernels_fire.N_MAX)
-            pairs = kernels_fire.pair_work(n, gid, offsets, pair_j, lam, max_row=math.inf)
+            pairs = kernels_fire.pair_work(dim, n, gid, offsets, pair_j, lam, max_row=math.inf)
             active = kern(x, x_prev, x_new, n, diam, offsets, pair_j, lam, pairs, *no_walls(n), xbar, CENTRE, 1.2, -0.2,
                           0.02, 0.08, 0.0, 0.7, True, weighted, 0.05, update, acc, maxima)
             out.append((x_new, lam, acc, maxima, active))

@@ -64,9 +64,9 @@ CASES = {
 }
 
 
-def half_list(n_local, gid, offsets, pair_j, lam):
+def half_list(dim, n_local, gid, offsets, pair_j, lam):
     """The pass's half list whatever the rows' length (these tests' rows are complete)."""
-    return kernels_fire.pair_work(n_local, gid, offsets, pair_j, lam, max_row=math.inf)
+    return kernels_fire.pair_work(dim, n_local, gid, offsets, pair_j, lam, max_row=math.inf)
 
 
 @pytest.mark.parametrize("walk", ["half list", "whole rows"])
@@ -92,7 +92,7 @@ def test_fire_kernel_matches_reference(dim, form, case, walk):
     acc = exactsum.new_accumulator(dim + kernels_fire.N_ACC)
     maxima = np.zeros(kernels_fire.N_MAX)
     kern = kernels_fire.fire_al_step(form, dim)
-    pairs = half_list(n, gid, offsets, pair_j, pair_lambda) if walk == "half list" else kernels_fire.WHOLE_ROWS
+    pairs = half_list(dim, n, gid, offsets, pair_j, pair_lambda) if walk == "half list" else kernels_fire.WHOLE_ROWS
     assert (pairs[0].size > 0) == (walk == "half list")
     n_active = kern(x, x_prev, x_new, n, diam, offsets, pair_j, pair_lambda, pairs, *no_walls(n), xbar, CENTRE,
                     p["a1"], p["a2"],
@@ -139,7 +139,7 @@ def test_daha_mode_is_the_paper_kernel(form):
                                                     a1, a2, a3, a4, 1.3, True, acc, mx)
         else:
             acc, mx = exactsum.new_accumulator(dim + kernels_fire.N_ACC), np.zeros(kernels_fire.N_MAX)
-            pairs = half_list(n, np.arange(n, dtype=np.int64), offsets, pair_j, lam)
+            pairs = half_list(dim, n, np.arange(n, dtype=np.int64), offsets, pair_j, lam)
             kernels_fire.fire_al_step(form, dim)(x, x_prev, x_new, n, diam, offsets, pair_j, lam, pairs,
                                                  *no_walls(n), xbar, CENTRE,
                                                  a1, a2, a3, a4, 1.3, 0.0, False, False, 0.0, True, acc, mx)
@@ -162,7 +162,7 @@ def test_kkt_point_is_a_fixed_point():
         lam = np.full(2, lam_star)
         x_new = np.empty_like(x)
         acc, mx = exactsum.new_accumulator(2 + kernels_fire.N_ACC), np.zeros(kernels_fire.N_MAX)
-        pairs = half_list(2, np.arange(2, dtype=np.int64), offsets, pair_j, lam)
+        pairs = half_list(2, 2, np.arange(2, dtype=np.int64), offsets, pair_j, lam)
         kernels_fire.fire_al_step("S", 2)(x, x, x_new, 2, diam, offsets, pair_j, lam, pairs, *no_walls(2), xbar,
                                           CENTRE,
                                           p["a1"], p["a2"],
@@ -201,12 +201,12 @@ def test_radial_equalisation_makes_a_uniform_ball(dim):
         assert abs((r1 <= q * radius).mean() - q ** dim) < 0.02, (q, (r1 <= q * radius).mean())
 
 
-def _every_entry_alone(n_local, offsets, pair_j):
+def _every_entry_alone(dim, n_local, offsets, pair_j):
     """The ``pairs`` of a pass that computes every row entry on its own (no mirrors): the
     arithmetic of a pass over the whole of both rows of each pair."""
     n_pairs = int(offsets[n_local])
     return (offsets[:n_local + 1].copy(), np.arange(n_pairs, dtype=np.int64), pair_j[:n_pairs].copy(),
-            np.full(n_pairs, -1, dtype=np.int64), np.empty((kernels_fire.N_TERMS, n_pairs)))
+            np.full(n_pairs, -1, dtype=np.int64), np.empty((kernels_fire.n_terms(dim), n_pairs)))
 
 
 @pytest.mark.parametrize("n, n_local", [(30, 30), (30, 17), (50, 50), (50, 33)])
@@ -224,7 +224,7 @@ def test_pair_halves_list_every_pair_once(n, n_local):
     lam = lam_full[owner, pair_j].copy()
     odd = int(np.flatnonzero((pair_j < n_local) & (pair_j > owner))[3])  # one asymmetric pair
     lam[odd] *= 1.5
-    half_offsets, half_e, half_j, half_f, _ = half_list(n_local, gid, offsets, pair_j, lam)
+    half_offsets, half_e, half_j, half_f, _ = half_list(2, n_local, gid, offsets, pair_j, lam)
     assert np.array_equal(half_j, pair_j[half_e]) and np.all(np.diff(half_e) > 0)
     assert np.array_equal(np.repeat(np.arange(n_local), np.diff(half_offsets)), owner[half_e])
     covered = np.zeros(offsets[n_local], dtype=int)
@@ -265,7 +265,7 @@ def test_each_pair_once_gives_the_bits_of_both_rows(dim, form, case):
         owner = np.repeat(np.arange(n_local), np.diff(offsets))
         lam0 = lam_full[owner, pair_j].copy()
         out = []
-        for pairs in (half_list(n_local, gid, offsets, pair_j, lam0), _every_entry_alone(n_local, offsets, pair_j),
+        for pairs in (half_list(dim, n_local, gid, offsets, pair_j, lam0), _every_entry_alone(dim, n_local, offsets, pair_j),
                       kernels_fire.WHOLE_ROWS):
             lam = lam0.copy()
             x_new = np.full_like(x, np.nan)
@@ -300,7 +300,7 @@ def test_gradient_pass_moves_as_the_full_pass(dim, form):
         offsets, pair_j = rows_complete(n_local, n, gid)
         owner = np.repeat(np.arange(n_local), np.diff(offsets))
         lam0 = lam_full[owner, pair_j].copy()
-        for pairs in (half_list(n_local, gid, offsets, pair_j, lam0), kernels_fire.WHOLE_ROWS):
+        for pairs in (half_list(dim, n_local, gid, offsets, pair_j, lam0), kernels_fire.WHOLE_ROWS):
             out = []
             for gradient_pass, x_prev in ((False, x + 0.05 * rng.normal(size=x.shape)), (True, np.full_like(x, np.nan))):
                 lam = lam0.copy()
@@ -327,7 +327,7 @@ def test_dense_rows_get_no_half_list():
     gid = np.arange(n, dtype=np.int64)
     offsets, pair_j = rows_complete(n, n, gid)  # n - 1 > HALF_LIST_MAX_ROW entries a sphere
     lam = np.zeros(offsets[n])
-    assert kernels_fire.pair_work(n, gid, offsets, pair_j, lam) is kernels_fire.WHOLE_ROWS
+    assert kernels_fire.pair_work(2, n, gid, offsets, pair_j, lam) is kernels_fire.WHOLE_ROWS
     offsets, pair_j = rows_complete(n - 4, n - 4, gid)
-    work = kernels_fire.pair_work(n - 4, gid, offsets, pair_j, lam[:offsets[n - 4]])
-    assert work[0].shape == (n - 3,) and work[4].shape == (kernels_fire.N_TERMS, offsets[n - 4])
+    work = kernels_fire.pair_work(2, n - 4, gid, offsets, pair_j, lam[:offsets[n - 4]])
+    assert work[0].shape == (n - 3,) and work[4].shape == (4, offsets[n - 4])

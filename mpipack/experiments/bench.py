@@ -356,7 +356,7 @@ def phases_case(comm, dim, n, run_iters=None, repeats=5, target=0.3, fit_steps=5
     }
 
     from mpipack.kernels import fire as kernels_fire
-    pairs = [kernels_fire.pair_work(nl, st.gid, st.pair_offsets, st.pair_j, st.pair_lambda)]
+    pairs = [kernels_fire.pair_work(dim, nl, st.gid, st.pair_offsets, st.pair_j, st.pair_lambda)]
 
     def kernel_call(c, update, gradient_pass=False):
         def call():

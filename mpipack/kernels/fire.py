@@ -103,10 +103,13 @@ def _term(lam, phi, phin, g2, hess, unit, a3, a4, beta, lam_floor, clip, weighte
 
 
 # rows of the pair terms' buffer (``pairs``' terms), one column per row entry: the force
-# m grad_i phi_ij = -g (X_i - X_j) as b components (rows 0 .. b-1), the dual gain's and the
-# Gershgorin row's shares
-TERM_GAIN, TERM_ROW = 3, 4
-N_TERMS = 5
+# m grad_i phi_ij = -g (X_i - X_j) as b components (rows 0 .. b-1), then the dual gain's
+# (row b) and the Gershgorin row's (row b + 1) shares
+
+
+def n_terms(dim):
+    """The rows of the terms buffer in dimension ``dim``."""
+    return dim + 2
 
 
 @njit(cache=True, inline="always")
@@ -191,8 +194,8 @@ def _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e, 
             if dim > 2:
                 terms[2, e] = t2
             if figures:
-                terms[TERM_GAIN, e] = gain
-                terms[TERM_ROW, e] = row
+                terms[dim, e] = gain
+                terms[dim + 1, e] = row
             if f >= 0:
                 fu = np.uint64(f)
                 if update_lambda:
@@ -203,8 +206,8 @@ def _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e, 
                 if dim > 2:
                     terms[2, fu] = -t2
                 if figures:
-                    terms[TERM_GAIN, fu] = gain
-                    terms[TERM_ROW, fu] = row
+                    terms[dim, fu] = gain
+                    terms[dim + 1, fu] = row
     return n_active, min_ratio2
 
 
@@ -227,8 +230,8 @@ def _row_sums(dim, e0, e1, terms, figures):
         if dim > 2:
             f2 -= terms[2, e]
         if figures:
-            gain += terms[TERM_GAIN, e]
-            row += terms[TERM_ROW, e]
+            gain += terms[dim, e]
+            row += terms[dim + 1, e]
     return f0, f1, f2, gain, row
 
 
@@ -424,7 +427,7 @@ _DOC = """One pass of the fire-al step for one form and dimension; see the modul
     Shapes as ``kernels.multipliers_and_step``; acc int64 (b+N_ACC, exactsum.NBINS+1), added to;
     maxima float64 (N_MAX,), overwritten. Returns the number of row entries with lambda > 0.
     pairs: (half_offsets, half_e, half_j, half_f, terms), the rows' half list and a terms buffer
-    (N_TERMS, n_pairs), made with the rows (``pair_work``), or ``WHOLE_ROWS``.
+    (b + 2, n_pairs), made with the rows (``pair_work``), or ``WHOLE_ROWS``.
     """
 
 
@@ -532,22 +535,22 @@ def pair_halves(n_local, gid, pair_offsets, pair_j, pair_lambda):
 
 # the pass walks whole rows, with no half list, when the rows hold more entries than this per
 # sphere (a dense start's first pass: hundreds a sphere; a run's rows hold about 6 in 2D, 8 - 11
-# in 3D): the half list's 44 bytes an entry would then outgrow the rows' own memory guard
+# in 3D): the half list's 20 + 8 (b + 2) bytes an entry would then outgrow the rows' own memory guard
 HALF_LIST_MAX_ROW = 24
 
 # the ``pairs`` of a pass that walks whole rows (no half list)
 WHOLE_ROWS = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int32),
-              np.zeros(0, dtype=np.int64), np.zeros((N_TERMS, 0)))
+              np.zeros(0, dtype=np.int64), np.zeros((0, 0)))
 
 
-def pair_work(n_local, gid, pair_offsets, pair_j, pair_lambda, max_row=HALF_LIST_MAX_ROW):
+def pair_work(dim, n_local, gid, pair_offsets, pair_j, pair_lambda, max_row=HALF_LIST_MAX_ROW):
     """The ``pairs`` argument of a pass over these rows: (half_offsets, half_e, half_j, half_f)
-    of ``pair_halves`` and a terms buffer (n_pairs, N_TERMS); ``WHOLE_ROWS`` when the rows
+    of ``pair_halves`` and a terms buffer (dim + 2, n_pairs); ``WHOLE_ROWS`` when the rows
     hold more than ``max_row`` entries a sphere."""
     if pair_offsets[n_local] > max_row * n_local:
         return WHOLE_ROWS
     halves = pair_halves(n_local, gid, pair_offsets, pair_j, pair_lambda)
-    return halves + (np.empty((N_TERMS, int(pair_offsets[n_local]))),)
+    return halves + (np.empty((n_terms(dim), int(pair_offsets[n_local]))),)
 
 
 def fire_al_step(form, dim):
