@@ -201,3 +201,35 @@ def test_a_shortened_step_that_overshoots_halves_the_gradient_scale():
     # settled where the wall balances the pull: k_wall (wall - dist) = 1/2 dist
     balance = -0.5 * wall / (k_wall + 0.5)
     assert max(abs(g - balance) for g in gaps[-50:]) < 1e-6
+
+
+@pytest.mark.parametrize("dim", [1, 2, 3])
+def test_unrolled_kernels_give_the_generic_bits(dim):
+    """The kernels compiled for the run's number of slots (UNROLLED_SLOTS, the loops over the
+    slots unrolled) leave the same bits as those for any number: the dots' accumulator, maxima
+    and count, and the direction's memory and X^{n+1}, with the memory full and with some
+    slots unused (coefficient 0). The run's memory is the unrolled one in every dimension."""
+    k = kernels_qn.UNROLLED_SLOTS
+    assert qn.slots(qn.MEMORY[dim]) == k
+    rng = np.random.default_rng(40 + dim)
+    n = 600  # more than two blocks of the exact sums' columns
+    x = rng.normal(size=(n, dim)) * 10.0
+    x_new = x - rng.normal(size=(n, dim)) * 1e-2
+    mem = rng.normal(size=(n, k, dim)) * 1e-2
+    cap = 0.02
+    got = []
+    for unrolled in (False, True):
+        acc = exactsum.new_accumulator(k + 1 + dim + 2)
+        maxima = np.zeros(1)
+        count = kernels_qn._DOTS[dim, unrolled](x, x_new, n, mem, 3, cap, acc, maxima)
+        got.append((acc, maxima, count))
+    assert got[0][2] > 0 and np.array_equal(got[0][0], got[1][0]) and np.array_equal(got[0][1], got[1][1])
+    assert got[0][2] == got[1][2]
+    for coef in (rng.normal(size=k), np.where(np.arange(k) % 3 == 1, 0.0, rng.normal(size=k))):
+        out = []
+        for unrolled in (False, True):
+            m2, xn = mem.copy(), x_new.copy()
+            kernels_qn._DIRECTION[dim, unrolled](x, xn, n, m2, coef, 1, 2, cap)
+            out.append((m2, xn))
+        assert np.array_equal(out[0][0], out[1][0]) and np.array_equal(out[0][1], out[1][1])
+        assert not np.array_equal(out[0][1], x_new)
