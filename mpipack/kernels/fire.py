@@ -183,39 +183,45 @@ def _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e, 
             n_active += both if lam > 0.0 else 0
             if update_lambda:
                 pair_lambda[e] = lam
-            # the partner's entry gets the opposite force: X_j - X_i = -(X_i - X_j) and
-            # g (-d) = -(g d) exactly
+            # with figures the factor g, the same in both entries; without, the force's
+            # components, the partner's entry the opposite ones (X_j - X_i = -(X_i - X_j) and
+            # g (-d) = -(g d) exactly)
             t0 = g * d0
             t1 = g * d1
             t2 = g * d2
-            terms[0, e] = t0
-            if dim > 1:
-                terms[1, e] = t1
-            if dim > 2:
-                terms[2, e] = t2
             if figures:
+                terms[0, e] = g
                 terms[dim, e] = gain
                 terms[dim + 1, e] = row
+            else:
+                terms[0, e] = t0
+                if dim > 1:
+                    terms[1, e] = t1
+                if dim > 2:
+                    terms[2, e] = t2
             if f >= 0:
                 fu = np.uint64(f)
                 if update_lambda:
                     pair_lambda[fu] = lam
-                terms[0, fu] = -t0
-                if dim > 1:
-                    terms[1, fu] = -t1
-                if dim > 2:
-                    terms[2, fu] = -t2
                 if figures:
+                    terms[0, fu] = g
                     terms[dim, fu] = gain
                     terms[dim + 1, fu] = row
+                else:
+                    terms[0, fu] = -t0
+                    if dim > 1:
+                        terms[1, fu] = -t1
+                    if dim > 2:
+                        terms[2, fu] = -t2
     return n_active, min_ratio2
 
 
 @njit(cache=True, inline="always")
-def _row_sums(dim, e0, e1, terms, figures):
+def _row_sums(dim, x, xi0, xi1, xi2, e0, e1, pair_j, terms, figures):
     """The second half of a pass, for one sphere: its row's pair terms summed in the row's
-    (partner-gid) order, F_i = -sum_j g (X_i - X_j) as the terms hold them, and with
-    ``figures`` the dual gain and the Gershgorin sum; as (F_i as three scalars, gain, row)."""
+    (partner-gid) order, F_i = -sum_j g (X_i - X_j), and with ``figures`` the dual gain and the
+    Gershgorin sum; as (F_i as three scalars, gain, row). With figures the terms hold g, and
+    X_i - X_j is taken again here; without, the force's components."""
     f0 = 0.0
     f1 = 0.0
     f2 = 0.0
@@ -224,14 +230,20 @@ def _row_sums(dim, e0, e1, terms, figures):
     for e in range(np.uint64(e0), np.uint64(e1)):
         # a zero term adds exact zeros (the force is never -0.0: it starts at +0.0 and
         # x - x = +0.0)
-        f0 -= terms[0, e]
-        if dim > 1:
-            f1 -= terms[1, e]
-        if dim > 2:
-            f2 -= terms[2, e]
         if figures:
+            d0, d1, d2, _ = separation(dim, x, xi0, xi1, xi2, np.uint64(pair_j[e]))
+            g = terms[0, e]
+            f0 -= g * d0
+            f1 -= g * d1
+            f2 -= g * d2
             gain += terms[dim, e]
             row += terms[dim + 1, e]
+        else:
+            f0 -= terms[0, e]
+            if dim > 1:
+                f1 -= terms[1, e]
+            if dim > 2:
+                f2 -= terms[2, e]
     return f0, f1, f2, gain, row
 
 
@@ -315,9 +327,9 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
         e0, e1 = pair_offsets[i], pair_offsets[i + 1]
         if halves:
             if gradient_pass:  # (the gain and row shares were not written)
-                f0, f1, f2, gain, row = _row_sums(dim, e0, e1, terms, False)
+                f0, f1, f2, gain, row = _row_sums(dim, x, xi0, xi1, xi2, e0, e1, pair_j, terms, False)
             else:
-                f0, f1, f2, gain, row = _row_sums(dim, e0, e1, terms, True)
+                f0, f1, f2, gain, row = _row_sums(dim, x, xi0, xi1, xi2, e0, e1, pair_j, terms, True)
         else:
             f0, f1, f2, gain, row, n_row, min_ratio2 = _whole_row(
                 form, dim, x, xi0, xi1, xi2, di, e0, e1, pair_j, diam, pair_lambda, a3, a4, beta, lam_floor,
