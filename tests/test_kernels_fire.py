@@ -1,6 +1,7 @@
 """The fire-al kernel against a numpy reference written from its formulas (kernels_fire's
 docstring), the DAHA mode against the paper's kernel, and the fixed points."""
 
+import itertools
 import math
 import zlib
 
@@ -295,8 +296,10 @@ def test_gradient_pass_moves_as_the_full_pass(dim, form):
     gid = rng.permutation(n).astype(np.int64)
     xbar = x.mean(axis=0)
     kern = kernels_fire.fire_al_step(form, dim)
-    coeffs = (1.0, 0.0, 1.0, 0.3, 0.0, 0.7, True, True, 0.0)  # a1 .. vmax: the stiff phase's gradient
-    for n_local in (n, 17):
+    # a1 .. vmax: the stiff phase's gradient; and without the clip and weighted dual (the
+    # kernel's general branch)
+    for coeffs, n_local in itertools.product(((1.0, 0.0, 1.0, 0.3, 0.0, 0.7, True, True, 0.0),
+                                              (1.0, 0.0, 1.0, 0.3, 0.0, 0.0, False, False, 0.0)), (n, 17)):
         offsets, pair_j = rows_complete(n_local, n, gid)
         owner = np.repeat(np.arange(n_local), np.diff(offsets))
         lam0 = lam_full[owner, pair_j].copy()

@@ -31,8 +31,8 @@ list: a pair of two local spheres appears in both rows) and writes them to both 
 the second sums each sphere's row of terms in the row's partner-gid order, as a pass over the
 whole rows would, so the bits do not depend on the partition (nor on the half list), and each
 pair's arithmetic (its constraint, the dual step, the division by d_ij^p, the branches) is done
-once instead of twice (``mpipack bench --phases``: docs/benchmarks.md). The terms are the
-force's components, not its factor g: the second half then reads no partner position.
+once instead of twice (``mpipack bench --phases``: docs/benchmarks.md). In L-BFGS's gradient
+pass the terms are the force's components, and its second half reads no partner position.
 
 Reduced figures (block "step" of the exact sums, block "step" of the maxima):
     exact   sum X^{n+1} (b rows), sum |X^{n+1}-X^n|^2, sum |X^n|^2, power sum G.V (V = X^n -
@@ -102,9 +102,10 @@ def _term(lam, phi, phin, g2, hess, unit, a3, a4, beta, lam_floor, clip, weighte
     return lam, m, gain, row
 
 
-# rows of the pair terms' buffer (``pairs``' terms), one column per row entry: the force
-# m grad_i phi_ij = -g (X_i - X_j) as b components (rows 0 .. b-1), then the dual gain's
-# (row b) and the Gershgorin row's (row b + 1) shares
+# rows of the pair terms' buffer (``pairs``' terms), one column per row entry: a FIRE or
+# multiplier pass's factor g of the force m grad_i phi_ij = -g (X_i - X_j) (row 0), the dual
+# gain's (row b) and the Gershgorin row's (row b + 1) shares; a gradient pass's force as b
+# components (rows 0 .. b-1)
 
 
 def n_terms(dim):
@@ -186,7 +187,7 @@ def _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e, 
             # with figures the factor g, the same in both entries; without, the force's
             # components, the partner's entry the opposite ones (X_j - X_i = -(X_i - X_j) and
             # g (-d) = -(g d) exactly)
-            t0 = g * d0
+            t0 = g * d0  # (used without figures only)
             t1 = g * d1
             t2 = g * d2
             if figures:
@@ -320,13 +321,13 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
         else:
             n_active, min_ratio2 = _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e,
                                                half_j, half_f, terms, a3, a4, beta, lam_floor, clip, weighted_dual,
-                                               update_lambda, True)
+                                               update_lambda, not gradient_pass)
     for i in range(n_local):
         xi0, xi1, xi2 = coordinates(dim, x, i)
         di = diam[i]
         e0, e1 = pair_offsets[i], pair_offsets[i + 1]
         if halves:
-            if gradient_pass:  # (the gain and row shares were not written)
+            if gradient_pass:  # (the force's components; no gain or row shares)
                 f0, f1, f2, gain, row = _row_sums(dim, x, xi0, xi1, xi2, e0, e1, pair_j, terms, False)
             else:
                 f0, f1, f2, gain, row = _row_sums(dim, x, xi0, xi1, xi2, e0, e1, pair_j, terms, True)
