@@ -196,12 +196,12 @@ taken to come from cache, so these are the least traffic, STREAM's convention: a
 counted once):
 
     fire, alm         sphere 24 b + 16  (x, x_prev, x_new written, d_i, offset)
-                      entry  54 + 16 b: the half list's entries (half of them: entry, partner
-                      and mirror 20, lambda read 8 and written to both entries 16, the b + 2
-                      terms written to both 16 (b + 2)), then every entry's terms read
-                      (8 (b + 2)); fire_nodual (no dual step) 46 + 16 b
+                      entry  74: the half list's entries (half of them: entry, partner and
+                      mirror 20, lambda read 8 and written to both entries 16, the three
+                      terms g, gain, row written to both 48), then every entry's pair_j and
+                      terms read (28); fire_nodual (no dual step) 66
     grad              sphere 16 b + 16 (x, x_new written, d_i, offset); entry 14 + 16 b (no
-                      dual step, the force's b terms only)
+                      dual step; the force's b components written to both entries, read)
     dots              sphere 8 b (2 + K), K = 2m + 1 memory slots (x, x_new, every slot)
     direction         sphere 8 b 17 (x, x_new, 11 slots read; 3 slots and x_new written)
     metrics           sphere 8 b + 44 (x, d, gid, offset; pressure, contacts, |g_i| written)
@@ -297,9 +297,9 @@ def traffic_bytes(dim, m):
     """(bytes per sphere, bytes per pair entry, bytes per contact row) of each phase (PHASES_DOC)."""
     k = 2 * m + 1
     return {
-        "fire": (24 * dim + 16, 54 + 16 * dim, 0), "fire_nodual": (24 * dim + 16, 46 + 16 * dim, 0),
+        "fire": (24 * dim + 16, 74, 0), "fire_nodual": (24 * dim + 16, 66, 0),
         "fire_norows": (24 * dim + 16, 0, 0),
-        "alm": (24 * dim + 16, 54 + 16 * dim, 0), "grad": (16 * dim + 16, 14 + 16 * dim, 0),
+        "alm": (24 * dim + 16, 74, 0), "grad": (16 * dim + 16, 14 + 16 * dim, 0),
         "dots": (8 * dim * (2 + k), 0, 0), "direction": (8 * dim * 17, 0, 0),
         "metrics": (8 * dim + 44, 12, 0), "fit_step": (32 * dim + 16, 0, 72),
     }
@@ -362,8 +362,9 @@ def phases_case(comm, dim, n, run_iters=None, repeats=5, target=0.3, fit_steps=5
         def call():
             red.begin()
             # (a gradient pass reads no X^{n-1}: x_prev is x, as ``FireAL.lbfgs_iteration`` has it)
-            kern(st.x, st.x if gradient_pass else st.x_prev, st.x_new, nl, st.diam, st.pair_offsets, st.pair_j, st.pair_lambda, pairs[0], st.walls,
-                 st.wall_lambda, solver.xbar, solver.pot, *c, update, red.acc("step"), red.maxima("step"), gradient_pass)
+            kern(st.x, st.x if gradient_pass else st.x_prev, st.x_new, nl, st.diam, st.pair_offsets, st.pair_j,
+                 st.pair_lambda, pairs[0], st.walls, st.wall_lambda, solver.xbar, solver.pot, *c, update,
+                 red.acc("step"), red.maxima("step"), gradient_pass)
         return call
 
     sec = {}

@@ -35,9 +35,9 @@ from mpipack.parallel import exactsum
 _AT_CAP = 1.0 - 1e-9
 
 # The run's number of slots (``methods.lbfgs.MEMORY`` = 5 pairs in every dimension: 2m + 1):
-# compiled with it as a constant, the loops over the slots are unrolled (dots 5.5 -> 4.7 ns a
-# sphere, direction 7.4 -> 5.9, 2D; the same arithmetic in the same order). Another memory
-# takes the kernels compiled for any number of slots.
+# compiled with it as a constant, the loops over the slots are unrolled, the same arithmetic in
+# the same order (about a fifth faster: docs/benchmarks.md, session 40). Another memory takes
+# the kernels compiled for any number of slots.
 UNROLLED_SLOTS = 11
 
 
@@ -46,8 +46,7 @@ def _dots(dim, fixed_slots, x, x_new, n_local, qn, head, cap, acc, maxima):
     # fixed_slots: the slots as a compile-time constant (UNROLLED_SLOTS), or 0: qn's
     k_slots = fixed_slots if fixed_slots > 0 else qn.shape[1]
     # one value per accumulator row and sphere, summed down the rows' columns a block of
-    # spheres at a time (``exactsum.columns``): the 2m + 4 + b exact sums per sphere are most of
-    # this pass's time
+    # spheres at a time (``exactsum.columns``)
     cols = exactsum.columns(acc)
     max2 = 0.0
     at_cap = 0
