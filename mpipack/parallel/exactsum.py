@@ -171,6 +171,8 @@ def columns(acc):
     the same way, and its pieces are added as integers (``_cut_sum_below_bin1``), exactly, in
     whatever order."""
     n_q = acc.shape[0]
+    if n_q > COLUMN_BLOCK + _ROW_PAD:  # (row n_q holds one value a quantity)
+        raise ValueError("exactsum.columns: more quantities than a row holds")
     return np.zeros((n_q + 1, COLUMN_BLOCK + _ROW_PAD))
 
 
