@@ -69,7 +69,7 @@ def test_a_dual_step_of_gain_zero_changes_no_bit(dim, form):
     phases' profile found): the same bits as the dual step it replaces, lambda + 0 = lambda,
     whether the pass is asked to update lambda or not."""
     from mpipack.kernels import fire as kernels_fire
-    from mpipack.parallel import exactsum
+    from mpipack.parallel import exactsum, neighbors
     from support import CENTRE, no_walls, random_cloud, random_lambda, rows_complete
 
     rng = np.random.default_rng(7 + dim)
@@ -90,7 +90,8 @@ def test_a_dual_step_of_gain_zero_changes_no_bit(dim, form):
             x_new = np.full_like(x, np.nan)
             acc = exactsum.new_accumulator(dim + kernels_fire.N_ACC)
             maxima = np.zeros(kernels_fire.N_MAX)
-            pairs = kernels_fire.pair_work(dim, n, gid, offsets, pair_j, lam, max_row=math.inf)
+            mirror = neighbors.find_mirrors(n, gid, offsets, pair_j)
+            pairs = kernels_fire.pair_work(dim, n, offsets, pair_j, lam, mirror, max_row=math.inf)
             active = kern(x, x_prev, x_new, n, diam, offsets, pair_j, lam, pairs, *no_walls(n), xbar, CENTRE, 1.2, -0.2,
                           0.02, 0.08, 0.0, 0.7, True, weighted, 0.05, update, acc, maxima)
             out.append((x_new, lam, acc, maxima, active))

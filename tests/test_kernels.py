@@ -14,8 +14,10 @@ import pytest
 
 from support import CENTRE, no_walls, random_cloud, random_lambda, ref_phi_grad, rows_complete
 
+from mpipack.jit import njit
 from mpipack.parallel import exactsum, neighbors
 from mpipack.kernels import daha as kernels
+from mpipack.kernels import fire as kernels_fire
 from mpipack.methods import fixed
 
 # ---------------------------------------------------------------------------------------------
@@ -153,7 +155,7 @@ def test_kernel_with_ghosts_and_verlet_rows(dim, form):
     x_ref, lam_ref = ref_step("daha", form, x, x_prev, diam, lam_prev, p["alpha"], p["beta"],
                               p["gamma"], p["c"], True)
     empty = (np.zeros(n_local + 1, np.int64), np.empty(0, np.int64), np.empty(0))
-    offsets, pair_j, pair_lambda, missing = neighbors.build_rows(x, n_local, n, gid, diam, 0.3,
+    offsets, pair_j, pair_lambda, missing, _ = neighbors.build_rows(x, n_local, n, gid, diam, 0.3,
                                                                  *empty)
     assert missing == 0
     owner = np.repeat(np.arange(n_local), np.diff(offsets))
@@ -377,7 +379,7 @@ def test_build_rows_matches_brute_force(dim):
     gid = (rng.permutation(n) * 3 + 5).astype(np.int64)  # not 0..n-1
     for skin in (0.0 + 1e-9, 0.3, 1.1):
         empty = (np.zeros(n_local + 1, np.int64), np.empty(0, np.int64), np.empty(0))
-        off, pj, pl, missing = neighbors.build_rows(x, n_local, n, gid, diam, skin, *empty)
+        off, pj, pl, missing, _ = neighbors.build_rows(x, n_local, n, gid, diam, skin, *empty)
         assert missing == 0
         assert off.shape == (n_local + 1,) and off[0] == 0
         assert pj.dtype == np.int32
@@ -388,20 +390,108 @@ def test_build_rows_matches_brute_force(dim):
         assert sum(len(r) for r in want) > 0
 
 
+@njit
+def _rank_sort(g, j, n, g_work, j_work):
+    return neighbors._rank_sort(g, j, n, g_work, j_work)
+
+
 def test_rank_sort_sorts_or_refuses_equal_keys():
     """A row's sort by ranks: keys ascending and partners alike for distinct keys (rows of 0 to
-    48 entries); with two equal keys it says so (False), and the build then sorts by insertion."""
+    48 entries), in place, nothing past n touched; with two equal keys it says so (False) and
+    leaves the row as it was, and the build then sorts by insertion."""
     rng = np.random.default_rng(5)
     for n in (0, 1, 2, 7, 14, 48):
-        g = rng.permutation(10 * n + 1)[:n].astype(np.int64)
-        j = rng.integers(0, 1000, size=n).astype(np.int64)
-        g_out, j_out = np.full(n + 2, -7, np.int64), np.full(n + 2, -7, np.int64)
-        assert neighbors._rank_sort(g, j, n, g_out, j_out)
-        o = np.argsort(g)
-        assert np.array_equal(g_out[:n], g[o]) and np.array_equal(j_out[:n], j[o])
-        assert np.all(g_out[n:] == -7)
+        g = np.concatenate([rng.permutation(10 * n + 1)[:n], [-3, -3]]).astype(np.int64)
+        j = rng.integers(0, 1000, size=n + 2).astype(np.int64)
+        g0, j0 = g.copy(), j.copy()
+        assert _rank_sort(g, j, n, np.empty(n + 2, np.int64), np.empty(n + 2, np.int64))
+        o = np.argsort(g0[:n])
+        assert np.array_equal(g[:n], g0[o]) and np.array_equal(j[:n], j0[o])
+        assert np.array_equal(g[n:], g0[n:]) and np.array_equal(j[n:], j0[n:])
     g = np.array([9, 4, 9, 1], np.int64)
-    assert not neighbors._rank_sort(g, np.arange(4), 4, np.empty(4, np.int64), np.empty(4, np.int64))
+    j = np.arange(4, dtype=np.int64)
+    assert not _rank_sort(g, j, 4, np.empty(4, np.int64), np.empty(4, np.int64))
+    assert g.tolist() == [9, 4, 9, 1] and j.tolist() == [0, 1, 2, 3]
+
+
+@njit
+def _build_rows_sorted(b, x, n_local, n_total, gid, diam, skin, ho, hg, hl, max_entries):
+    return neighbors._build_rows_sorted(b, x, n_local, n_total, gid, diam, skin, ho, hg, hl, max_entries)
+
+
+def _moved_with_history(rng, x, n_local, gid, diam, skin, shift):
+    """Rows at x, lambda > 0 on about half the entries (a pair's two entries mostly alike,
+    some not), the history they give, and x moved by ``shift``: some history partners far."""
+    n = x.shape[0]
+    empty = (np.zeros(n_local + 1, np.int64), np.empty(0, np.int64), np.empty(0))
+    off, pj, _, _, _ = neighbors.build_rows(x, n_local, n, gid, diam, skin, *empty)
+    lam = np.where(rng.random(pj.shape[0]) < 0.5, rng.random(pj.shape[0]) + 0.01, 0.0)
+    row = np.repeat(np.arange(n_local), np.diff(off))
+    first = {}
+    for e in range(pj.shape[0]):
+        key = tuple(sorted((int(gid[row[e]]), int(gid[pj[e]]))))
+        if key in first and rng.random() < 0.8:
+            lam[e] = lam[first[key]]
+        first.setdefault(key, e)
+    hist = neighbors.history(n_local, gid, off, pj, lam)
+    return x + rng.normal(0.0, shift, x.shape), hist
+
+
+@pytest.mark.parametrize("dim", [1, 2, 3])
+def test_build_rows_finds_each_pair_once_with_the_same_rows(dim):
+    """The build that finds each pair once gives the rows, bit for bit, of the build that makes
+    one row at a time, and each entry's mirror as ``find_mirrors`` searches it (history
+    partners beyond reach in both rows included); where it leaves the build to the other (a
+    dense start's rows, a gid twice among the particles) the rows are the other's, with no
+    mirror."""
+    rng = np.random.default_rng(60 + dim)
+    cases = once = 0
+    for n, n_local, density, poly in ((400, 400, 1.0, False), (400, 250, 1.0, True),
+                                      (300, 200, 3.0, False), (60, 30, 0.3, True)):
+        side = (n / density) ** (1.0 / dim)
+        x = rng.uniform(0.0, side, size=(n, dim))
+        diam = rng.lognormal(0.0, 0.3, n) if poly else np.ones(n)
+        gid = (rng.permutation(3 * n)[:n] + 7).astype(np.int64)
+        for skin in (0.05, 0.3, 1.0):
+            x2, hist = _moved_with_history(rng, x, n_local, gid, diam, skin, 0.7 * skin + 0.05)
+            off, pj, pl, missing, mirror = neighbors.build_rows(x2, n_local, n, gid, diam, skin, *hist)
+            want = _build_rows_sorted(dim, x2, n_local, n, gid, diam, skin, *hist, np.int64(2 ** 62))
+            assert np.array_equal(off, want[0]) and np.array_equal(pj, want[1]) and pj.dtype == np.int32
+            assert pl.tobytes() == want[2].tobytes() and missing == want[3] == 0
+            if mirror is None:  # (rows too long for it: more than PAIRS_ONCE_MAX pairs a sphere)
+                assert off[-1] > neighbors.PAIRS_ONCE_MAX * n_local
+                continue
+            once += 1
+            assert np.array_equal(mirror, neighbors.find_mirrors(n_local, gid, off, pj))
+            # the half list from the build's mirrors is the one from searched mirrors
+            found = kernels_fire.pair_work(dim, n_local, off, pj, pl, mirror, max_row=np.inf)
+            searched = kernels_fire.pair_work(dim, n_local, off, pj, pl, neighbors.find_mirrors(
+                n_local, gid, off, pj), max_row=np.inf)
+            assert all(np.array_equal(a, b) for a, b in zip(found[:4], searched[:4]))
+            # mirrors of far history partners: beyond d_ij + skin in both rows
+            row = np.repeat(np.arange(n_local), np.diff(off))
+            far = np.linalg.norm(x2[row] - x2[pj], axis=1) >= 0.5 * (diam[row] + diam[pj]) + skin
+            cases += int(np.sum(far & (mirror >= 0)))
+    assert cases > 0, "test set-up: some far history pair in both rows"
+    assert once >= 9, "test set-up: most cases are the build's usual ones"
+    # a dense start: rows of hundreds of entries, the row-at-a-time build, no mirrors
+    n = 1500
+    x = rng.normal(0.0, 1.0, size=(n, dim))
+    gid = np.arange(n, dtype=np.int64)
+    empty = (np.zeros(n + 1, np.int64), np.empty(0, np.int64), np.empty(0))
+    off, pj, pl, missing, mirror = neighbors.build_rows(x, n, n, gid, np.ones(n), 0.05, *empty)
+    want = _build_rows_sorted(dim, x, n, n, gid, np.ones(n), 0.05, *empty, np.int64(2 ** 62))
+    assert off[-1] > 2 * neighbors.PAIRS_ONCE_MAX * n and mirror is None
+    assert np.array_equal(off, want[0]) and np.array_equal(pj, want[1])
+    # a gid twice (a ghost copy of a local): the other build, no mirrors
+    n, n_local = 200, 150
+    x = rng.uniform(0.0, n ** (1.0 / dim), size=(n, dim))
+    gid = np.arange(n, dtype=np.int64)
+    gid[160], x[160] = 3, x[3] + 0.3
+    empty = (np.zeros(n_local + 1, np.int64), np.empty(0, np.int64), np.empty(0))
+    off, pj, pl, missing, mirror = neighbors.build_rows(x, n_local, n, gid, np.ones(n), 0.3, *empty)
+    want = _build_rows_sorted(dim, x, n_local, n, gid, np.ones(n), 0.3, *empty, np.int64(2 ** 62))
+    assert mirror is None and np.array_equal(off, want[0]) and np.array_equal(pj, want[1])
 
 
 def test_history_keeps_the_partners_with_lambda_above_zero():
@@ -452,7 +542,7 @@ def test_build_rows_keeps_history():
     h_off[1:] = len(hist)
     h_gid = np.array([g for g, _ in hist], np.int64)
     h_lam = np.array([l for _, l in hist])
-    off, pj, pl, missing = neighbors.build_rows(x, n_local, n, gid, diam, skin, h_off, h_gid, h_lam)
+    off, pj, pl, missing, _ = neighbors.build_rows(x, n_local, n, gid, diam, skin, h_off, h_gid, h_lam)
     assert missing == 1
     got = rows_as_gids(off, pj, gid)
     assert got[0] == sorted(set(want[0]) | {int(gid[far])})
@@ -499,7 +589,7 @@ def test_build_rows_history_sparse_grid_and_crowded_cells(dim):
         h_off[i + 1] = len(h_gid)
         best.append(lam_of)
     h_gid, h_lam = np.array(h_gid, np.int64), np.array(h_lam)
-    off, pj, pl, missing = neighbors.build_rows(x, n_local, n, gid, diam, skin, h_off, h_gid, h_lam)
+    off, pj, pl, missing, _ = neighbors.build_rows(x, n_local, n, gid, diam, skin, h_off, h_gid, h_lam)
     assert missing == missing_want
     got = rows_as_gids(off, pj, gid)
     for i in range(n_local):

@@ -8,7 +8,7 @@ import zlib
 import numpy as np
 import pytest
 
-from mpipack.parallel import exactsum
+from mpipack.parallel import exactsum, neighbors
 from mpipack.kernels import daha as kernels, fire as kernels_fire
 from mpipack.methods import fixed
 
@@ -66,8 +66,10 @@ CASES = {
 
 
 def half_list(dim, n_local, gid, offsets, pair_j, lam):
-    """The pass's half list whatever the rows' length (these tests' rows are complete)."""
-    return kernels_fire.pair_work(dim, n_local, gid, offsets, pair_j, lam, max_row=math.inf)
+    """The pass's half list whatever the rows' length (these tests' rows are complete), from
+    the entries' mirrors searched (``neighbors.find_mirrors``: what the rows' build finds)."""
+    mirror = neighbors.find_mirrors(n_local, gid, offsets, pair_j)
+    return kernels_fire.pair_work(dim, n_local, offsets, pair_j, lam, mirror, max_row=math.inf)
 
 
 @pytest.mark.parametrize("walk", ["half list", "whole rows"])
@@ -330,7 +332,11 @@ def test_dense_rows_get_no_half_list():
     gid = np.arange(n, dtype=np.int64)
     offsets, pair_j = rows_complete(n, n, gid)  # n - 1 > HALF_LIST_MAX_ROW entries a sphere
     lam = np.zeros(offsets[n])
-    assert kernels_fire.pair_work(2, n, gid, offsets, pair_j, lam) is kernels_fire.WHOLE_ROWS
+    mirror = neighbors.find_mirrors(n, gid, offsets, pair_j)
+    assert kernels_fire.pair_work(2, n, offsets, pair_j, lam, mirror) is kernels_fire.WHOLE_ROWS
     offsets, pair_j = rows_complete(n - 4, n - 4, gid)
-    work = kernels_fire.pair_work(2, n - 4, gid, offsets, pair_j, lam[:offsets[n - 4]])
+    mirror = neighbors.find_mirrors(n - 4, gid, offsets, pair_j)
+    work = kernels_fire.pair_work(2, n - 4, offsets, pair_j, lam[:offsets[n - 4]], mirror)
     assert work[0].shape == (n - 3,) and work[4].shape == (4, offsets[n - 4])
+    # rows whose build found no mirrors (a gid twice) are walked whole too
+    assert kernels_fire.pair_work(2, n - 4, offsets, pair_j, lam[:offsets[n - 4]], None) is kernels_fire.WHOLE_ROWS

@@ -168,7 +168,7 @@ def full_rows(x, n_local, gid, diam):
     """Pair rows from neighbors.build_rows with a skin so large that every pair is in them."""
     n = x.shape[0]
     empty = (np.zeros(n_local + 1, np.int64), np.empty(0, np.int64), np.empty(0))
-    offsets, pair_j, pair_lambda, missing = neighbors.build_rows(x, n_local, n, gid, diam, 1e3, *empty)
+    offsets, pair_j, pair_lambda, missing, _ = neighbors.build_rows(x, n_local, n, gid, diam, 1e3, *empty)
     assert missing == 0
     assert np.array_equal(np.diff(offsets), np.full(n_local, n - 1)), "rows must be complete"
     for i in range(n_local):  # sorted by partner gid

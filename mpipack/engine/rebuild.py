@@ -84,7 +84,7 @@ def rebuild(s, rebalance=False, hist=None):
     st.set_particles(part, ghost)
     st.lambda_fresh = lam_fresh
     st.pair_work = None  # made again from the new rows by the method that uses it
-    st.pair_offsets, st.pair_j, st.pair_lambda, missing = neighbors.build_rows(
+    st.pair_offsets, st.pair_j, st.pair_lambda, missing, st.pair_mirror = neighbors.build_rows(
         st.x, st.n_local, st.n_total, st.gid, st.diam, s.skin, *hist,
         max_entries=s.max_pair_entries)
     too_dense = comm.allreduce(np.array([1 if missing < 0 else 0]), op="max")[0]

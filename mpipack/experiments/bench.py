@@ -182,6 +182,10 @@ calls long enough to take about ``target`` seconds):
                   with its reduction
     fit_step      one step of the certificate's multiplier fit (``stop.fit``): (time of
                   best_kkt with K steps - with 0 steps) / K
+    build         the pair rows built again from the state's positions and history
+                  (``parallel.neighbors.build_rows``, the state's skin) and the fire-al pass's
+                  half list made from them (``kernels.fire.pair_work``): a rebuild's rows, not
+                  its exchange, borders or the locals' cell order
     iteration     ``Solver.step`` as the loop runs it from the packed state (the schedule's
                   own choice of pass, the reduction, ghosts, rebuilds when due); timed last,
                   the state moves on
@@ -326,6 +330,7 @@ def phases_case(comm, dim, n, run_iters=None, repeats=5, target=0.3, fit_steps=5
     from mpipack.kernels import lbfgs as kernels_lbfgs
     from mpipack.methods import lbfgs
     from mpipack.methods.fire_al_schedule import OMEGA, VMAX, Coefficients
+    from mpipack.parallel import neighbors
     from mpipack.stop import measures
 
     t0 = time.perf_counter()
@@ -356,7 +361,8 @@ def phases_case(comm, dim, n, run_iters=None, repeats=5, target=0.3, fit_steps=5
     }
 
     from mpipack.kernels import fire as kernels_fire
-    pairs = [kernels_fire.pair_work(dim, nl, st.gid, st.pair_offsets, st.pair_j, st.pair_lambda)]
+    mirror = neighbors.find_mirrors(nl, st.gid, st.pair_offsets, st.pair_j)
+    pairs = [kernels_fire.pair_work(dim, nl, st.pair_offsets, st.pair_j, st.pair_lambda, mirror)]
 
     def kernel_call(c, update, gradient_pass=False):
         def call():
@@ -413,6 +419,14 @@ def phases_case(comm, dim, n, run_iters=None, repeats=5, target=0.3, fit_steps=5
     t_k = time_it(lambda: measures.best_kkt(solver, fig_m, 0.0, fit_k))
     t_0 = time_it(lambda: measures.best_kkt(solver, fig_m, 0.0, 0))
     sec["fit_step"] = (t_k - t_0) / fit_k
+    hist = neighbors.history(nl, st.gid, st.pair_offsets, st.pair_j, st.pair_lambda)
+
+    def build():
+        offsets, pair_j, pair_lambda, _, mirror = neighbors.build_rows(
+            st.x, nl, st.n_total, st.gid, st.diam, solver.skin, *hist)
+        kernels_fire.pair_work(dim, nl, offsets, pair_j, pair_lambda, mirror)
+
+    sec["build"] = time_it(build)
     sec["iteration"] = time_it(solver.step)
     bandwidth = comm.allreduce(np.array([triad_bandwidth(triad_n)]), op="min")[0]
     cached = comm.allreduce(np.array([triad_bandwidth(_TRIAD_CACHED_N, 20)]), op="min")[0]
@@ -444,7 +458,8 @@ def phases_case(comm, dim, n, run_iters=None, repeats=5, target=0.3, fit_steps=5
 
 
 PHASE_ORDER = ("fire", "fire_nodual", "dual", "fire_norows", "pair_loop", "alm",
-               "grad", "dots", "direction", "reduce", "two_loop", "lbfgs", "metrics", "fit_step", "iteration")
+               "grad", "dots", "direction", "reduce", "two_loop", "lbfgs", "metrics", "fit_step", "build",
+               "iteration")
 
 
 def format_phases(r, lammps_ns=None):

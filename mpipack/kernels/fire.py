@@ -482,54 +482,23 @@ for _f in _STEPS.values():
     _f.__doc__ = _DOC
 
 
-# a row longer than this is searched by bisection on its partners' gids; a shorter one by a
-# scan for the partner's index (no branch to mispredict, no gid read: about twice as fast in
-# the rows of a packing, docs/benchmarks.md "Cheaper rebuilds")
-_SCAN_ROW = 32
-
-
 @njit(cache=True)
-def pair_halves(n_local, gid, pair_offsets, pair_j, pair_lambda):
+def pair_halves(n_local, pair_offsets, pair_j, pair_lambda, mirror):
     """Each pair of two local spheres once: the half list of the rows, for a pass that computes
     a pair's terms once and writes them to both of its entries (``_pair_terms``).
 
+    mirror int64 (n_pairs,): each entry's mirror, the entry of the partner's row whose partner
+    is this entry's sphere, or -1 (``neighbors.build_rows`` or ``neighbors.find_mirrors``).
     Returns (half_offsets int64 (n_local+1,), half_e int64, half_j int32, half_f int64, each
     (n_half,)): row i's listed entries are half_e[half_offsets[i]:half_offsets[i+1]] (in row
-    order), with their partners half_j and their mirrors half_f (the entry of the partner's
-    row whose partner is i), or -1. An entry is listed unless it is the mirror of one that is:
-    of an entry pair (e of row i, f of row j) the one with i < j is listed, with mirror f; an
-    entry whose partner is a ghost, or whose mirror is missing or holds another lambda (the
-    pair's two entries must hold the same bits: every pass then keeps them so), is listed with
-    mirror -1. A row holds a partner at most once; a mirror is found by a scan of the partner's
-    row for i, or in a long row by bisection on the partners' gids (rows are in gid order).
+    order), with their partners half_j and their mirrors half_f, or -1. An entry is listed
+    unless it is the mirror of one that is: of an entry pair (e of row i, f of row j) the one
+    with i < j is listed, with mirror f; an entry whose partner is a ghost, or whose mirror is
+    missing or holds another lambda (the pair's two entries must hold the same bits: every
+    pass then keeps them so), is listed with mirror -1.
     """
-    n_pairs = pair_offsets[n_local]
-    mirror = np.full(n_pairs, -1, dtype=np.int64)
-    for i in range(n_local):
-        gi = gid[i]
-        for e in range(pair_offsets[i], pair_offsets[i + 1]):
-            j = pair_j[e]
-            if j >= n_local or j < i:
-                continue
-            lo = pair_offsets[j]
-            hi = pair_offsets[j + 1]
-            if hi - lo <= _SCAN_ROW:
-                f = -1
-                for q in range(lo, hi):
-                    if pair_j[q] == i:
-                        f = q
-            else:
-                while lo < hi:
-                    mid = (lo + hi) // 2
-                    if gid[pair_j[mid]] < gi:
-                        lo = mid + 1
-                    else:
-                        hi = mid
-                f = lo if lo < pair_offsets[j + 1] and pair_j[lo] == i else -1
-            if f >= 0 and pair_lambda[f] == pair_lambda[e]:
-                mirror[e] = f
-                mirror[f] = e
     # every entry is written at the next free place, and kept (k advances) when listed
+    n_pairs = pair_offsets[n_local]
     half_offsets = np.empty(n_local + 1, dtype=np.int64)
     half_e = np.empty(n_pairs, dtype=np.int64)
     half_j = np.empty(n_pairs, dtype=np.int32)
@@ -538,10 +507,13 @@ def pair_halves(n_local, gid, pair_offsets, pair_j, pair_lambda):
     k = 0
     for i in range(n_local):
         for e in range(pair_offsets[i], pair_offsets[i + 1]):
+            f = mirror[e]
+            if f >= 0 and not pair_lambda[f] == pair_lambda[e]:
+                f = -1
             half_e[k] = e
             half_j[k] = pair_j[e]
-            half_f[k] = mirror[e]
-            k += np.int64(mirror[e] < 0 or pair_j[e] > i)
+            half_f[k] = f
+            k += np.int64(f < 0 or pair_j[e] > i)
         half_offsets[i + 1] = k
     return half_offsets, half_e[:k].copy(), half_j[:k].copy(), half_f[:k].copy()
 
@@ -556,13 +528,15 @@ WHOLE_ROWS = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros
               np.zeros(0, dtype=np.int64), np.zeros((0, 0)))
 
 
-def pair_work(dim, n_local, gid, pair_offsets, pair_j, pair_lambda, max_row=HALF_LIST_MAX_ROW):
+def pair_work(dim, n_local, pair_offsets, pair_j, pair_lambda, mirror, max_row=HALF_LIST_MAX_ROW):
     """The ``pairs`` argument of a pass over these rows: (half_offsets, half_e, half_j, half_f)
-    of ``pair_halves`` and a terms buffer (dim + 2, n_pairs); ``WHOLE_ROWS`` when the rows
-    hold more than ``max_row`` entries a sphere."""
-    if pair_offsets[n_local] > max_row * n_local:
+    of ``pair_halves`` and a terms buffer (dim + 2, n_pairs), from the entries' mirrors as the
+    rows' build found them (``neighbors.build_rows``); ``WHOLE_ROWS`` when the rows hold more
+    than ``max_row`` entries a sphere, or when the build found no mirrors (mirror None: it
+    finds them for every run's rows but a dense start's; the pass's bits are the same)."""
+    if mirror is None or pair_offsets[n_local] > max_row * n_local:
         return WHOLE_ROWS
-    halves = pair_halves(n_local, gid, pair_offsets, pair_j, pair_lambda)
+    halves = pair_halves(n_local, pair_offsets, pair_j, pair_lambda, mirror)
     return halves + (np.empty((n_terms(dim), int(pair_offsets[n_local]))),)
 
 

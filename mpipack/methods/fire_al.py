@@ -66,8 +66,9 @@ class FireAL(Method):
             pairs = kernels_fire.WHOLE_ROWS
         else:
             if st.pair_work is None:  # the rows were built again
-                st.pair_work = kernels_fire.pair_work(self.dim, st.n_local, st.gid, st.pair_offsets,
-                                                      st.pair_j, st.pair_lambda)
+                st.pair_work = kernels_fire.pair_work(self.dim, st.n_local, st.pair_offsets, st.pair_j,
+                                                      st.pair_lambda, st.pair_mirror)
+                st.pair_mirror = None  # (the half list holds what the pass needs of it)
             pairs = st.pair_work
         return self.kernel(st.x, x_other, st.x_new, n_local, st.diam, st.pair_offsets, st.pair_j,
                            st.pair_lambda, pairs, st.walls, st.wall_lambda, xbar, solver.pot, *self.coeffs, update,

@@ -135,9 +135,329 @@ def _max_occupancy(skeys):
 
 
 @njit(cache=True, inline="always")
-def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda,
-                max_entries):
-    """Pair rows of the local particles.
+def _cell_order(b, x, n_total, gid, diam, skin):
+    """The build's cells (size h = max diameter + skin) and the particles in cell order.
+
+    Returns (keys int64 (n_total,), dims int64 (b,), dense, order, skeys, cell_start, xs
+    (n_total, b), ds, gs): ``_cell_index``'s order of the keys, and the positions, diameters and
+    gids copied in that order (row-major cell keys, so that the 3 cells along the last axis of a
+    row of cells are one contiguous run of the copy)."""
+    dmax = 0.0
+    for i in range(n_total):
+        if diam[i] > dmax:
+            dmax = diam[i]
+    keys, lo, dims = cell_keys(x, n_total, dmax + skin)
+    n_cells = dense_cells(dims, n_total)
+    order, skeys, cell_start = _cell_index(keys, n_cells)
+    xs = np.empty((n_total, b))
+    ds = np.empty(n_total)
+    gs = np.empty(n_total, dtype=np.int64)
+    for q in range(n_total):
+        j = order[q]
+        for k in range(b):
+            xs[q, k] = x[j, k]
+        ds[q] = diam[j]
+        gs[q] = gid[j]
+    return keys, dims, n_cells > 0, order, skeys, cell_start, xs, ds, gs
+
+
+@njit(cache=True, inline="always")
+def _stencil(b, forward):
+    """The rows of cells (offsets along the first b - 1 axes, 0 along the last) whose 3 cells
+    along the last axis hold a cell's neighbours: all 3^(b-1) of them; or, ``forward``, the
+    cell's own row first, then the rows after it in key order (their first nonzero offset from
+    axis 0, the key's most significant, is +1), so that each pair of neighbouring cells is met
+    from one of its two cells. Returns offs int64 (rows, b)."""
+    n_all = 3 ** (b - 1)
+    offs = np.zeros(((n_all + 1) // 2 if forward else n_all, b), dtype=np.int64)
+    o = np.empty(b, dtype=np.int64)
+    n = 1 if forward else 0  # (forward: row 0 is the cell's own, all offsets 0)
+    for m in range(n_all):
+        t = m
+        first = 0
+        for k in range(b - 1):
+            o[k] = t % 3 - 1
+            t //= 3
+        for k in range(b - 2, -1, -1):
+            if o[k] != 0:
+                first = o[k]
+        if forward and first <= 0:
+            continue
+        for k in range(b - 1):
+            offs[n, k] = o[k]
+        n += 1
+    return offs
+
+
+@njit(cache=True, inline="always")
+def _cell_runs(b, key, dims, dense, cell_start, skeys, offs, forward, coord, run_start, run_end):
+    """The runs of the cell order that hold the particles of the cells around the cell ``key``:
+    for each row of ``offs`` (``_stencil``) its cells c - 1 .. c + 1 along the last axis (with
+    ``forward``, row 0 from c: the cell itself and the next), empty runs left out but row 0's
+    (forward: it holds the cell's own particles). Returns the number of runs written."""
+    t = key
+    for k in range(b - 1, -1, -1):
+        coord[k] = t % dims[k]
+        t //= dims[k]
+    last = b - 1
+    c_hi = min(coord[last] + 1, dims[last] - 1)
+    n_runs = 0
+    for m in range(offs.shape[0]):
+        c_lo = coord[last] if forward and m == 0 else max(coord[last] - 1, 0)
+        base = np.int64(0)
+        ok = True
+        for k in range(b - 1):
+            c = coord[k] + offs[m, k]
+            if c < 0 or c >= dims[k]:
+                ok = False
+                break
+            base = base * dims[k] + c
+        if not ok:
+            continue
+        base = base * dims[last]
+        if dense:
+            s0 = np.int64(cell_start[base + c_lo])
+            s1 = np.int64(cell_start[base + c_hi + 1])
+        else:
+            s0 = _searchsorted_left(skeys, base + c_lo)
+            s1 = _searchsorted_left(skeys, base + c_hi + 1)
+        if s1 > s0 or (forward and m == 0):
+            run_start[n_runs] = s0
+            run_end[n_runs] = s1
+            n_runs += 1
+    return n_runs
+
+
+@njit(cache=True)
+def _merge_history(i, cnt, row_g, row_j, row_l, row_t, hist_offsets, hist_gid, hist_lambda, sgid,
+                   gorder, missing):
+    """Local particle i's history (in gid order, as ``history`` gives it) merged into its row
+    (row_g, row_j, row_l, row_t [:cnt], sorted by gid, lambda 0): a partner among the
+    candidates takes the history's lambda (the larger of repeated ones), another is inserted
+    (row_t -1) where the gid lookup finds it (sgid the gids sorted, gorder their indices, both
+    (n_total,), filled by ``_gid_lookup`` once missing[1] = 1), else counted in missing[0].
+    Returns the row's new length, or -1 when a partner must be inserted and the lookup is not
+    filled: fill it (missing[1] = 1) and merge again (lambda's max is idempotent). (Kept small,
+    the lookup's sort outside, so that LLVM inlines it into the builds' row loops: with the
+    sort inside, called there, it made a 2D build 1.6 times as long.)"""
+    q = 0
+    g_prev = np.int64(-1)
+    for e in range(hist_offsets[i], hist_offsets[i + 1]):
+        g = hist_gid[e]
+        if g < g_prev:  # not in gid order (a history read from elsewhere): search afresh
+            q = 0
+        g_prev = g
+        while q < cnt and row_g[q] < g:
+            q += 1
+        if q < cnt and row_g[q] == g:  # a candidate (or a repeated partner): the larger lambda
+            if hist_lambda[e] > row_l[q]:
+                row_l[q] = hist_lambda[e]
+            continue
+        if missing[1] == 0:
+            return -1
+        s = _searchsorted_left(sgid, g)
+        if s >= sgid.shape[0] or sgid[s] != g:
+            missing[0] += 1
+            continue
+        for c in range(cnt, q, -1):
+            row_g[c] = row_g[c - 1]
+            row_j[c] = row_j[c - 1]
+            row_l[c] = row_l[c - 1]
+            row_t[c] = row_t[c - 1]
+        row_g[q] = g
+        row_j[q] = gorder[s]
+        row_l[q] = hist_lambda[e]
+        row_t[q] = -1
+        cnt += 1
+    return cnt
+
+
+@njit(cache=True, inline="always")
+def _row_buffers(n_total, cap_candidates, hist_offsets, n_local):
+    """Row buffers sized once for the longest possible row: cap_candidates candidates (at
+    most all particles) plus the longest history; (row_g, row_j, row_l, row_t) and two for the
+    rank sort's work (``_rank_sort``)."""
+    most_hist = 0
+    for i in range(n_local):
+        if hist_offsets[i + 1] - hist_offsets[i] > most_hist:
+            most_hist = hist_offsets[i + 1] - hist_offsets[i]
+    row_cap = min(cap_candidates, n_total) + most_hist + 1
+    return (np.empty(row_cap, dtype=np.int64), np.empty(row_cap, dtype=np.int64), np.empty(row_cap),
+            np.empty(row_cap, dtype=np.int64), np.empty(row_cap, dtype=np.int64),
+            np.empty(row_cap, dtype=np.int64))
+
+
+# ``_build_rows_once``'s answer when it leaves the build to ``_build_rows_sorted``
+_FALL_BACK = -2
+# the rows a build finds each pair once for: at most this many pairs per local sphere (a run's
+# rows hold 3 - 6; a dense start's first build hundreds, which the one-row-at-a-time build makes
+# in less memory)
+PAIRS_ONCE_MAX = 24
+
+
+@njit(cache=True, inline="always")
+def _build_rows_once(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda,
+                     max_entries):
+    """Pair rows of the local particles, each pair found once, and each entry's mirror.
+
+    Arguments and the rows as ``_build_rows_sorted`` (the same arrays, bit for bit); also
+    mirror int64 (n_pairs,): the entry of the partner's row whose partner is this entry's
+    particle, or -1 (a ghost partner, or none: a history partner that the other's history does
+    not hold). Returns (pair_offsets, pair_j, pair_lambda, missing, mirror); missing is
+    _FALL_BACK, and nothing else meaningful, for rows of more than PAIRS_ONCE_MAX pairs a
+    sphere (or max_entries / 3 in all) and for a row with two entries of one gid.
+
+    Each pair of particles in neighbouring cells is tested once, from the cell that comes
+    first in ``_stencil``'s forward half (within a cell, from the particle first in cell
+    order): |X_p - X_q|^2 < (d_pq / 2 + skin)^2 gives the same bits from either side. A pair
+    is kept when one of its two is local; its two sides (tag 2k + side, k the pair) are
+    scattered to the local particles' rows, each row sorted by partner gid and merged with its
+    history as in ``_build_rows_sorted``, and the entry each side lands in is kept, so that a
+    pair of two locals knows both of its entries without a search (``kernels.fire.pair_halves``).
+    """
+    keys, dims, dense, order, skeys, cell_start, xs, ds, gs = _cell_order(b, x, n_total, gid, diam, skin)
+    offs = _stencil(b, True)
+    local = np.empty(n_total, dtype=np.int64)
+    for q in range(n_total):
+        local[q] = np.int64(order[q] < n_local)
+    # (its arrays hold about 60 B an entry against the other build's 40, BYTES_PER_ENTRY_PEAK:
+    # at most 2/3 of max_entries, two entries a pair, keeps it within the memory guard)
+    limit = min(PAIRS_ONCE_MAX * n_local, max_entries // 3)
+    # pair k's two particles: ends[2k], ends[2k + 1]; room for the limit and one particle's
+    # candidates past it, so never grown (grown inside the candidate loop, the build took a
+    # third longer); the pages past what is written are never touched
+    ends = np.empty(2 * (limit + n_total), dtype=np.int32)
+    coord = np.empty(b, dtype=np.int64)
+    run_start = np.empty(offs.shape[0], dtype=np.int64)
+    run_end = np.empty(offs.shape[0], dtype=np.int64)
+    n_runs = 0
+    run_key = np.int64(-1)
+    n_pair = 0
+    for q in range(n_total):
+        if skeys[q] != run_key:
+            run_key = skeys[q]
+            n_runs = _cell_runs(b, run_key, dims, dense, cell_start, skeys, offs, True, coord, run_start,
+                                run_end)
+        dq = ds[q]
+        lq = local[q]
+        # every candidate is written, and kept (n_pair advances) when within reach and one of
+        # the two is local: no branch to mispredict in the hottest loop
+        for r in range(n_runs):
+            for p in range(q + 1 if r == 0 else run_start[r], run_end[r]):
+                r2 = 0.0
+                for k in range(b):
+                    dx = xs[q, k] - xs[p, k]
+                    r2 += dx * dx
+                rc = 0.5 * (dq + ds[p]) + skin
+                ends[2 * n_pair] = q
+                ends[2 * n_pair + 1] = p
+                n_pair += np.int64(r2 < rc * rc) & (lq | local[p])
+        if n_pair > limit:
+            return (np.zeros(n_local + 1, dtype=np.int64), np.empty(0, dtype=np.int32), np.empty(0),
+                    _FALL_BACK, np.empty(0, dtype=np.int64))
+    # the pairs' ends scattered to the rows: tag t = 2k + side is the entry of particle
+    # ends[t]'s row, whose partner is ends[t ^ 1]; a row's candidates (tag and the partner's
+    # gid) in the order of k
+    row_start = np.zeros(n_local + 2, dtype=np.int64)  # [n_local + 1]: the ghosts' ends, unused
+    for t in range(2 * n_pair):
+        a = order[ends[t]]
+        ends[t] = a
+        row_start[min(a, n_local) + 1] += 1
+    for i in range(n_local):
+        row_start[i + 1] += row_start[i]
+    n_cand = row_start[n_local]
+    cand_t = np.empty(n_cand, dtype=np.int64)
+    cand_g = np.empty(n_cand, dtype=np.int64)
+    fill = row_start[:n_local].copy()
+    for t in range(2 * n_pair):
+        a = ends[t]
+        if a < n_local:
+            c = fill[a]
+            cand_t[c] = t
+            cand_g[c] = gid[ends[t ^ 1]]
+            fill[a] = c + 1
+    most = 0
+    for i in range(n_local):
+        most = max(most, row_start[i + 1] - row_start[i])
+    row_g, row_j, row_l, row_t, work_g, work_t = _row_buffers(n_total, most, hist_offsets, n_local)
+    # gid -> index lookup, filled only when a history partner is not among the candidates (no
+    # array is assigned inside the row loop: see ``ends``); missing: (count, lookup filled)
+    sgid = np.empty(n_total, dtype=np.int64)
+    gorder = np.empty(n_total, dtype=np.int64)
+    missing = np.zeros(2, dtype=np.int64)
+    pair_offsets = np.zeros(n_local + 1, dtype=np.int64)
+    # the most the rows can hold (the candidates and every history entry; never grown)
+    out_cap = min(n_cand + hist_offsets[n_local], max_entries)
+    pair_j = np.empty(out_cap, dtype=np.int32)
+    pair_lambda = np.empty(out_cap)
+    slot = np.empty(2 * n_pair, dtype=np.int64)  # the entry each local side landed in
+    n_hist = hist_offsets[n_local]
+    far_e = np.empty(n_hist, dtype=np.int64)  # entries of inserted local history partners
+    far_i = np.empty(n_hist, dtype=np.int64)
+    n_far = 0
+    pos = 0
+    for i in range(n_local):
+        s0 = row_start[i]
+        cnt = row_start[i + 1] - s0
+        # the row in gid order; two entries of one gid leave the build to ``_build_rows_sorted``
+        for c in range(cnt):
+            row_g[c] = cand_g[s0 + c]
+            row_t[c] = cand_t[s0 + c]
+        if cnt > _SORT_SHORT or not _rank_sort(row_g, row_t, cnt, work_g, work_t):
+            _sort_row(row_g, row_t, cnt)
+            for c in range(1, cnt):
+                if row_g[c] == row_g[c - 1]:
+                    return (pair_offsets, pair_j[:0].copy(), pair_lambda[:0].copy(), _FALL_BACK,
+                            np.empty(0, dtype=np.int64))
+        for c in range(cnt):
+            row_j[c] = ends[row_t[c] ^ 1]
+            row_l[c] = 0.0
+        merged = _merge_history(i, cnt, row_g, row_j, row_l, row_t, hist_offsets, hist_gid, hist_lambda,
+                                sgid, gorder, missing)
+        if merged < 0:
+            _gid_lookup(gid, n_total, sgid, gorder)
+            missing[1] = 1
+            merged = _merge_history(i, cnt, row_g, row_j, row_l, row_t, hist_offsets, hist_gid,
+                                    hist_lambda, sgid, gorder, missing)
+        cnt = merged
+        if pos + cnt > max_entries:
+            return (pair_offsets, pair_j[:0].copy(), pair_lambda[:0].copy(), -1,
+                    np.empty(0, dtype=np.int64))
+        for c in range(cnt):
+            e = pos + c
+            pair_j[e] = row_j[c]
+            pair_lambda[e] = row_l[c]
+            t = row_t[c]
+            if t >= 0:
+                slot[t] = e
+            elif row_j[c] < n_local:
+                far_e[n_far] = e
+                far_i[n_far] = i
+                n_far += 1
+        pos += cnt
+        pair_offsets[i + 1] = pos
+    pair_j = pair_j[:pos].copy()
+    mirror = np.full(pos, -1, dtype=np.int64)
+    for k in range(n_pair):
+        if ends[2 * k] < n_local and ends[2 * k + 1] < n_local:
+            e0 = slot[2 * k]
+            e1 = slot[2 * k + 1]
+            mirror[e0] = e1
+            mirror[e1] = e0
+    # a far partner's entry is in the other's row only if its history holds the pair too
+    for u in range(n_far):
+        e = far_e[u]
+        f = mirror_in_row(far_i[u], pair_j[e], gid, pair_offsets, pair_j)
+        if f >= 0:
+            mirror[e] = f
+            mirror[f] = e
+    return pair_offsets, pair_j, pair_lambda[:pos].copy(), missing[0], mirror
+
+
+@njit(cache=True, inline="always")
+def _build_rows_sorted(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda,
+                       max_entries):
+    """Pair rows of the local particles, one row at a time.
 
     x (n_total, b) with locals first; gid int64, diam float64 (n_total,);
     hist_offsets (n_local+1,), hist_gid int64, hist_lambda float64: local particle i's history
@@ -149,108 +469,43 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
     hold more than max_entries entries the build stops early and missing is -1: a start so
     dense that the rows would not fit in memory is reported, not attempted.
 
-    The particles' positions, diameters and gids are copied in cell order (row-major cell
-    keys), so the 3 cells along the last axis of each of the 3^(b-1) neighbour cell rows are
-    one contiguous run of that copy: a sphere's candidates are 3^(b-1) runs, read in place.
-    Each row is assembled in buffers sized once for the longest possible row (3^b cells of
-    the fullest occupancy, at most all particles, plus the longest history) and sorted by
-    partner gid; history partners already among the candidates take their lambda, the others
-    (far partners) are inserted. No buffer is reallocated inside the candidate loop: growable
-    buffers there made the build 4x slower (measured: docs/research/convergence.md, section 3o).
+    A sphere's candidates are the 3^(b-1) runs of the cell order around its cell
+    (``_cell_order``, ``_cell_runs``), read in place. Each row is assembled in buffers sized
+    once for the longest possible row (3^b cells of the fullest occupancy, at most all
+    particles, plus the longest history) and sorted by partner gid; history partners already
+    among the candidates take their lambda, the others (far partners) are inserted. No buffer
+    is reallocated inside the candidate loop: growable buffers there made the build 4x slower
+    (measured: docs/research/convergence.md, section 3o).
     """
     pair_offsets = np.zeros(n_local + 1, dtype=np.int64)
     if n_local == 0:
         return pair_offsets, np.empty(0, dtype=np.int32), np.empty(0), 0
-    dmax = 0.0
-    for i in range(n_total):
-        if diam[i] > dmax:
-            dmax = diam[i]
-    h = dmax + skin
-    keys, lo, dims = cell_keys(x, n_total, h)
-    n_cells = dense_cells(dims, n_total)
-    dense = n_cells > 0
-    order, skeys, cell_start = _cell_index(keys, n_cells)
-    # positions, diameters and gids in cell order
-    xs = np.empty((n_total, b))
-    ds = np.empty(n_total)
-    gs = np.empty(n_total, dtype=np.int64)
-    for q in range(n_total):
-        j = order[q]
-        for k in range(b):
-            xs[q, k] = x[j, k]
-        ds[q] = diam[j]
-        gs[q] = gid[j]
-    n_rows_nb = 3 ** (b - 1)
-    offs = np.empty((n_rows_nb, b), dtype=np.int64)
-    for m in range(n_rows_nb):
-        t = m
-        for k in range(b - 1):
-            offs[m, k] = t % 3 - 1
-            t //= 3
-        offs[m, b - 1] = 0
-    # the longest row: every particle of the 3^b cells around (at most all of them), plus the
-    # longest history
-    most_hist = 0
-    for i in range(n_local):
-        if hist_offsets[i + 1] - hist_offsets[i] > most_hist:
-            most_hist = hist_offsets[i + 1] - hist_offsets[i]
-    row_cap = min(3 * n_rows_nb * _max_occupancy(skeys), n_total) + most_hist + 1
-    row_g = np.empty(row_cap, dtype=np.int64)
-    row_j = np.empty(row_cap, dtype=np.int64)
-    row_l = np.empty(row_cap)
-    # the rank sort's output, swapped with row_g, row_j
-    row_g2 = np.empty(row_cap, dtype=np.int64)
-    row_j2 = np.empty(row_cap, dtype=np.int64)
-    # gid -> index lookup, built only when a history partner is not among the candidates
-    sgid = np.empty(0, dtype=np.int64)
-    gorder = np.empty(0, dtype=np.int64)
-    have_lookup = False
+    keys, dims, dense, order, skeys, cell_start, xs, ds, gs = _cell_order(b, x, n_total, gid, diam, skin)
+    offs = _stencil(b, False)
+    row_g, row_j, row_l, row_t, row_g2, row_j2 = _row_buffers(
+        n_total, 3 * offs.shape[0] * _max_occupancy(skeys), hist_offsets, n_local)
+    # gid -> index lookup, filled only when a history partner is not among the candidates;
+    # missing: (count, lookup filled)
+    sgid = np.empty(n_total, dtype=np.int64)
+    gorder = np.empty(n_total, dtype=np.int64)
+    missing = np.zeros(2, dtype=np.int64)
 
     cap = min(max(16, n_local * 8), max(16, max_entries))
     pair_j = np.empty(cap, dtype=np.int32)
     pair_lambda = np.empty(cap)
     coord = np.empty(b, dtype=np.int64)
     # the runs of the cell order holding the candidates of the current cell
-    run_start = np.empty(n_rows_nb, dtype=np.int64)
-    run_end = np.empty(n_rows_nb, dtype=np.int64)
+    run_start = np.empty(offs.shape[0], dtype=np.int64)
+    run_end = np.empty(offs.shape[0], dtype=np.int64)
     n_runs = 0
     run_key = np.int64(-1)
-    last = b - 1
-    missing = 0
     pos = 0
     for i in range(n_local):
         cnt = 0
         if keys[i] != run_key:
             run_key = keys[i]
-            t = keys[i]
-            for k in range(b - 1, -1, -1):
-                coord[k] = t % dims[k]
-                t //= dims[k]
-            c_lo = max(coord[last] - 1, 0)
-            c_hi = min(coord[last] + 1, dims[last] - 1)
-            n_runs = 0
-            for m in range(n_rows_nb):
-                base = np.int64(0)
-                ok = True
-                for k in range(b - 1):
-                    c = coord[k] + offs[m, k]
-                    if c < 0 or c >= dims[k]:
-                        ok = False
-                        break
-                    base = base * dims[k] + c
-                if not ok:
-                    continue
-                base = base * dims[last]
-                if dense:
-                    s0 = np.int64(cell_start[base + c_lo])
-                    s1 = np.int64(cell_start[base + c_hi + 1])
-                else:
-                    s0 = _searchsorted_left(skeys, base + c_lo)
-                    s1 = _searchsorted_left(skeys, base + c_hi + 1)
-                if s1 > s0:
-                    run_start[n_runs] = s0
-                    run_end[n_runs] = s1
-                    n_runs += 1
+            n_runs = _cell_runs(b, run_key, dims, dense, cell_start, skeys, offs, False, coord, run_start,
+                                run_end)
         di = diam[i]
         # every candidate's place in the cell order is written, and kept (cnt advances) when
         # it is within reach: no branch to mispredict in the hottest loop
@@ -272,43 +527,18 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
                 row_j[kept] = j
                 kept += 1
         cnt = kept
-        if cnt <= _SORT_SHORT and _rank_sort(row_g, row_j, cnt, row_g2, row_j2):
-            row_g, row_g2 = row_g2, row_g
-            row_j, row_j2 = row_j2, row_j
-        else:
+        if cnt > _SORT_SHORT or not _rank_sort(row_g, row_j, cnt, row_g2, row_j2):
             _sort_row(row_g, row_j, cnt)
         for q in range(cnt):
             row_l[q] = 0.0
-        # the history (in gid order, as ``history`` gives it) merged into the sorted row
-        q = 0
-        g_prev = np.int64(-1)
-        for e in range(hist_offsets[i], hist_offsets[i + 1]):
-            g = hist_gid[e]
-            if g < g_prev:  # not in gid order (a history read from elsewhere): search afresh
-                q = 0
-            g_prev = g
-            while q < cnt and row_g[q] < g:
-                q += 1
-            if q < cnt and row_g[q] == g:  # a candidate (or a repeated partner): the larger lambda
-                if hist_lambda[e] > row_l[q]:
-                    row_l[q] = hist_lambda[e]
-                continue
-            if not have_lookup:
-                gorder = np.argsort(gid[:n_total])
-                sgid = gid[:n_total][gorder]
-                have_lookup = True
-            s = _searchsorted_left(sgid, g)
-            if s >= n_total or sgid[s] != g:
-                missing += 1
-                continue
-            for c in range(cnt, q, -1):
-                row_g[c] = row_g[c - 1]
-                row_j[c] = row_j[c - 1]
-                row_l[c] = row_l[c - 1]
-            row_g[q] = g
-            row_j[q] = gorder[s]
-            row_l[q] = hist_lambda[e]
-            cnt += 1
+        merged = _merge_history(i, cnt, row_g, row_j, row_l, row_t, hist_offsets, hist_gid, hist_lambda,
+                                sgid, gorder, missing)
+        if merged < 0:
+            _gid_lookup(gid, n_total, sgid, gorder)
+            missing[1] = 1
+            merged = _merge_history(i, cnt, row_g, row_j, row_l, row_t, hist_offsets, hist_gid,
+                                    hist_lambda, sgid, gorder, missing)
+        cnt = merged
         if pos + cnt > max_entries:
             return pair_offsets, pair_j[:0].copy(), pair_lambda[:0].copy(), -1
         if pos + cnt > cap:
@@ -320,7 +550,19 @@ def _build_rows(b, x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid,
             pair_lambda[pos + q] = row_l[q]
         pos += cnt
         pair_offsets[i + 1] = pos
-    return pair_offsets, pair_j[:pos].copy(), pair_lambda[:pos].copy(), missing
+    return pair_offsets, pair_j[:pos].copy(), pair_lambda[:pos].copy(), missing[0]
+
+
+@njit(cache=True, inline="always")
+def _build_rows(b, x, n_local, n_total, gid, diam, skin, ho, hg, hl, max_entries):
+    """``_build_rows_once``, or ``_build_rows_sorted`` where it falls back (mirror empty)."""
+    if n_local > 0:
+        out = _build_rows_once(b, x, n_local, n_total, gid, diam, skin, ho, hg, hl, max_entries)
+        if out[3] != _FALL_BACK:
+            return out
+    offsets, pair_j, pair_lambda, missing = _build_rows_sorted(b, x, n_local, n_total, gid, diam, skin,
+                                                               ho, hg, hl, max_entries)
+    return offsets, pair_j, pair_lambda, missing, np.empty(0, dtype=np.int64)
 
 
 @njit(cache=True)
@@ -340,14 +582,66 @@ def _build_rows_3(x, n_local, n_total, gid, diam, skin, ho, hg, hl, max_entries)
 
 def build_rows(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda,
                max_entries=2 ** 62):
-    """Pair rows of the local particles (compiled per dimension; see ``_build_rows``).
+    """Pair rows of the local particles (compiled per dimension; ``_build_rows_sorted`` says
+    what they hold, ``_build_rows_once`` how they are usually found).
 
     Returns (pair_offsets int64 (n_local+1,), pair_j int32 (n_pairs,), pair_lambda (n_pairs,),
-    missing); missing = -1 when the rows would exceed max_entries entries.
+    missing, mirror); missing = -1 when the rows would exceed max_entries entries; mirror int64
+    (n_pairs,) each entry's mirror (``_build_rows_once``), or None where the other build made
+    the rows (a dense start's, or a gid twice among the particles; ``find_mirrors`` searches
+    them).
     """
     f = (_build_rows_1, _build_rows_2, _build_rows_3)[x.shape[1] - 1]
-    return f(x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda,
-             np.int64(max_entries))
+    offsets, pair_j, pair_lambda, missing, mirror = f(
+        x, n_local, n_total, gid, diam, skin, hist_offsets, hist_gid, hist_lambda, np.int64(max_entries))
+    return offsets, pair_j, pair_lambda, missing, (mirror if mirror.shape[0] == pair_j.shape[0] and missing >= 0
+                                                   else None)
+
+
+# a row longer than this is searched by bisection on its partners' gids; a shorter one by a
+# scan for the partner's index (no branch to mispredict, no gid read: about twice as fast in
+# the rows of a packing, docs/benchmarks.md "Cheaper rebuilds")
+_SCAN_ROW = 32
+
+
+@njit(cache=True)
+def mirror_in_row(i, j, gid, pair_offsets, pair_j):
+    """The entry of local j's row whose partner is i, or -1 (rows in partner-gid order, a
+    partner at most once a row): a scan of a short row, bisection on gids in a long one."""
+    lo = pair_offsets[j]
+    hi = pair_offsets[j + 1]
+    if hi - lo <= _SCAN_ROW:
+        f = -1
+        for q in range(lo, hi):
+            if pair_j[q] == i:
+                f = q
+        return f
+    gi = gid[i]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if gid[pair_j[mid]] < gi:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo if lo < pair_offsets[j + 1] and pair_j[lo] == i else -1
+
+
+@njit(cache=True)
+def find_mirrors(n_local, gid, pair_offsets, pair_j):
+    """Each entry's mirror, searched (``mirror_in_row``): the entry of the partner's row whose
+    partner is this entry's particle, or -1 (a ghost partner, or none). int64 (n_pairs,); what
+    ``_build_rows_once`` gives with the rows."""
+    mirror = np.full(pair_offsets[n_local], -1, dtype=np.int64)
+    for i in range(n_local):
+        for e in range(pair_offsets[i], pair_offsets[i + 1]):
+            j = pair_j[e]
+            if j >= n_local or j < i:
+                continue
+            f = mirror_in_row(i, j, gid, pair_offsets, pair_j)
+            if f >= 0:
+                mirror[e] = f
+                mirror[f] = e
+    return mirror
 
 
 # a row of at most this many entries is sorted by ranks (``_rank_sort``), a longer one by
@@ -356,22 +650,27 @@ _SORT_SHORT = 48
 
 
 @njit(cache=True, inline="always")
-def _rank_sort(g, j, n, g_out, j_out):
-    """g[:n] ascending into g_out[:n], j alike into j_out, each entry placed at its rank (the
-    number of smaller keys: n^2 comparisons with no branch, quicker than an insertion sort's
-    mispredicted exits for a row of ~4-14 entries, docs/benchmarks.md "Cheaper rebuilds").
-    Returns False, with g_out and j_out unfinished, if two keys are equal (their ranks are then
-    not all distinct: the ranks' sum falls short of 0 + 1 + ... + n-1)."""
+def _rank_sort(g, j, n, g_work, j_work):
+    """Sort g[:n] ascending, permuting j alike, each entry placed at its rank (the number of
+    smaller keys: n^2 comparisons with no branch, quicker than an insertion sort's mispredicted
+    exits for a row of ~4-14 entries, docs/benchmarks.md "Cheaper rebuilds") in g_work, j_work,
+    then copied back. Returns False, with g and j unchanged, if two keys are equal (their ranks
+    are then not all distinct: the ranks' sum falls short of 0 + 1 + ... + n-1)."""
     rank_sum = 0
     for a in range(n):
         ga = g[a]
         r = 0
         for c in range(n):
             r += np.int64(g[c] < ga)
-        g_out[r] = ga
-        j_out[r] = j[a]
+        g_work[r] = ga
+        j_work[r] = j[a]
         rank_sum += r
-    return rank_sum == n * (n - 1) // 2
+    if rank_sum != n * (n - 1) // 2:
+        return False
+    for a in range(n):
+        g[a] = g_work[a]
+        j[a] = j_work[a]
+    return True
 
 
 @njit(cache=True)
@@ -402,6 +701,15 @@ def spatial_order(x, n, h):
     keys, lo, dims = cell_keys(x, n, h)
     order, _, _ = _cell_index(keys, dense_cells(dims, n))
     return order
+
+
+@njit(cache=True)
+def _gid_lookup(gid, n_total, sgid, gorder):
+    """gorder[:n_total] = the indices that sort gid[:n_total], sgid their gids, in place."""
+    o = np.argsort(gid[:n_total])
+    for q in range(n_total):
+        gorder[q] = o[q]
+        sgid[q] = gid[o[q]]
 
 
 @njit(cache=True)

@@ -13,6 +13,9 @@ Shapes (n_total = n_local + n_ghost, b = dim):
     pair_work              the fire-al pass's half list of the rows and its terms buffer
                            (``kernels.fire.pair_work``), made by the method when it needs it;
                            None after every build of the rows
+    pair_mirror int64 (n_pairs,)  each entry's mirror as the build found it (the entry of the
+                           partner's row with this particle, or -1), until the half list is
+                           made from it; None where the build did not find them
 
     x_lin    (n_total, b)  NAP/NAV only: the outer iterate X^p the constraints are linearised
                            about (ghost rows too); None for DAHA/AHA
@@ -103,6 +106,7 @@ class State:
         self.pair_j = np.zeros(0, dtype=np.int32)
         self.pair_lambda = np.zeros(0)
         self.pair_work = None
+        self.pair_mirror = None
         self.x_lin = None  # linearisation point X^p of the nested methods (n_total, b)
         self.qn = None  # the L-BFGS memory (n_local, 2m+1, b), once the schedule uses it
         self.walls = np.zeros((0, 8))  # the container's walls (``kernels.walls``)
