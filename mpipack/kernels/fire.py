@@ -532,8 +532,8 @@ def pair_work(dim, n_local, pair_offsets, pair_j, pair_lambda, mirror, max_row=H
     """The ``pairs`` argument of a pass over these rows: (half_offsets, half_e, half_j, half_f)
     of ``pair_halves`` and a terms buffer (dim + 2, n_pairs), from the entries' mirrors as the
     rows' build found them (``neighbors.build_rows``); ``WHOLE_ROWS`` when the rows hold more
-    than ``max_row`` entries a sphere, or when the build found no mirrors (mirror None: it
-    finds them for every run's rows but a dense start's; the pass's bits are the same)."""
+    than ``max_row`` entries a sphere, or when the build found no mirrors (mirror None: a dense
+    start's rows, a rank near its memory limit, a gid twice; the pass's bits are the same)."""
     if mirror is None or pair_offsets[n_local] > max_row * n_local:
         return WHOLE_ROWS
     halves = pair_halves(n_local, pair_offsets, pair_j, pair_lambda, mirror)

@@ -13,6 +13,11 @@ Cells: size h = max diameter + skin. Cell coordinates become one int64 key per p
 particles are sorted by key (a counting sort over a grid of at most 16 cells a particle, else a
 merge sort) and a cell's members are found by the grid's index or by binary search, so memory
 is O(particles) however sparse or spread out the cloud is.
+
+The build tests each pair once, from the forward half of the cells around a particle, and
+gives with the rows each entry's mirror (the partner's entry of the same pair), which the
+fire-al pass's half list reads (``_build_rows_once``); a dense start's rows are made one row at
+a time (``_build_rows_sorted``). Both give the same rows, bit for bit.
 """
 
 import numpy as np
