@@ -208,7 +208,8 @@ def _every_entry_alone(dim, n_local, offsets, pair_j):
     """The ``pairs`` of a pass that computes every row entry on its own (no mirrors): the
     arithmetic of a pass over the whole of both rows of each pair."""
     n_pairs = int(offsets[n_local])
-    return (offsets[:n_local + 1].copy(), np.arange(n_pairs, dtype=np.int64), pair_j[:n_pairs].copy(),
+    owner = np.repeat(np.arange(n_local, dtype=np.int32), np.diff(offsets[:n_local + 1]))
+    return (owner, np.arange(n_pairs, dtype=np.int64), pair_j[:n_pairs].copy(),
             np.full(n_pairs, -1, dtype=np.int64), np.empty((kernels_fire.n_terms(dim), n_pairs)))
 
 
@@ -227,9 +228,9 @@ def test_pair_halves_list_every_pair_once(n, n_local):
     lam = lam_full[owner, pair_j].copy()
     odd = int(np.flatnonzero((pair_j < n_local) & (pair_j > owner))[3])  # one asymmetric pair
     lam[odd] *= 1.5
-    half_offsets, half_e, half_j, half_f, _ = half_list(2, n_local, gid, offsets, pair_j, lam)
+    half_i, half_e, half_j, half_f, _ = half_list(2, n_local, gid, offsets, pair_j, lam)
     assert np.array_equal(half_j, pair_j[half_e]) and np.all(np.diff(half_e) > 0)
-    assert np.array_equal(np.repeat(np.arange(n_local), np.diff(half_offsets)), owner[half_e])
+    assert half_i.dtype == np.int32 and np.array_equal(half_i, owner[half_e])
     covered = np.zeros(offsets[n_local], dtype=int)
     covered[half_e] += 1
     covered[half_f[half_f >= 0]] += 1
@@ -337,6 +338,7 @@ def test_dense_rows_get_no_half_list():
     offsets, pair_j = rows_complete(n - 4, n - 4, gid)
     mirror = neighbors.find_mirrors(n - 4, gid, offsets, pair_j)
     work = kernels_fire.pair_work(2, n - 4, offsets, pair_j, lam[:offsets[n - 4]], mirror)
-    assert work[0].shape == (n - 3,) and work[4].shape == (4, offsets[n - 4])
+    m = n - 4  # each pair once: m (m - 1) / 2 listed entries
+    assert work[0].shape == (m * (m - 1) // 2,) and work[4].shape == (4, offsets[m])
     # rows whose build found no mirrors (a gid twice) are walked whole too
     assert kernels_fire.pair_work(2, n - 4, offsets, pair_j, lam[:offsets[n - 4]], None) is kernels_fire.WHOLE_ROWS

@@ -114,15 +114,11 @@ def n_terms(dim):
 
 
 @njit(cache=True, inline="always")
-def _pair(form, dim, x, xi0, xi1, xi2, di, j, diam, lam0, a3, a4, beta, lam_floor, clip, weighted_dual,
-          update_lambda):
-    """One pair's part of a pass (see the module docstring), from X_i (scalars), d_i, partner
-    j and lambda: (X_i - X_j as three scalars, lambda after the dual step, the force factor g
-    with m grad_i phi_ij = -g (X_i - X_j), the row's dual gain and Gershgorin shares, phi, the
-    squared distance, d_ij^2). A function of the pair alone: from the partner's side only the
-    separation's sign differs."""
-    d0, d1, d2, r2 = separation(dim, x, xi0, xi1, xi2, j)
-    dij = 0.5 * (di + diam[j])
+def _pair_math(form, r2, dij, lam0, a3, a4, beta, lam_floor, clip, weighted_dual, update_lambda):
+    """One pair's arithmetic (see the module docstring) from its squared distance r2, d_ij and
+    lambda: (lambda after the dual step, the force factor g with m grad_i phi_ij = -g (X_i -
+    X_j), the row's dual gain and Gershgorin shares, phi, d_ij^2). No memory access: the first
+    half of a pass runs it over a block of pairs at a time, in vector instructions."""
     phi, r = constraint(form, dij, r2)
     # |grad_i phi|^2 and the curvature of phi along the pair (the Gershgorin row)
     if form == SMOOTH:
@@ -141,7 +137,22 @@ def _pair(form, dim, x, xi0, xi1, xi2, di, j, diam, lam0, a3, a4, beta, lam_floo
     # gain and row are exact zeros
     lam, m, gain, row = _term(lam0, phi, phi * unit, g2, hess, unit, a3, a4, beta, lam_floor, clip,
                               weighted_dual, update_lambda)
-    return d0, d1, d2, lam, gradient_scale(form, m, r), gain, row, phi, r2, dd
+    return lam, gradient_scale(form, m, r), gain, row, phi, dd
+
+
+@njit(cache=True, inline="always")
+def _pair(form, dim, x, xi0, xi1, xi2, di, j, diam, lam0, a3, a4, beta, lam_floor, clip, weighted_dual,
+          update_lambda):
+    """One pair's part of a pass (see the module docstring), from X_i (scalars), d_i, partner
+    j and lambda: (X_i - X_j as three scalars, lambda after the dual step, the force factor g
+    with m grad_i phi_ij = -g (X_i - X_j), the row's dual gain and Gershgorin shares, phi, the
+    squared distance, d_ij^2). A function of the pair alone: from the partner's side only the
+    separation's sign differs."""
+    d0, d1, d2, r2 = separation(dim, x, xi0, xi1, xi2, j)
+    dij = 0.5 * (di + diam[j])
+    lam, g, gain, row, phi, dd = _pair_math(form, r2, dij, lam0, a3, a4, beta, lam_floor, clip, weighted_dual,
+                                            update_lambda)
+    return d0, d1, d2, lam, g, gain, row, phi, r2, dd
 
 
 @njit(cache=True, inline="always")
@@ -156,8 +167,17 @@ def _min_ratio(phi, r2, dd, min_ratio2):
     return min_ratio2
 
 
+# The first half of a pass takes the half list a block of PAIR_BLOCK pairs at a time, through
+# a scratch array of _W_ROWS rows (20 kB: in the L1 cache)
+PAIR_BLOCK = 256
+_W_D = 0  # rows 0 .. 2: X_i - X_j, then (without figures) the force's components
+# |X_i - X_j|^2, d_ij, lambda, (with figures) g and the gain's and row's shares, the overlap ratio
+_W_R2, _W_DIJ, _W_LAM, _W_G, _W_GAIN, _W_ROW, _W_RATIO = 3, 4, 5, 6, 7, 8, 9
+_W_ROWS = 10
+
+
 @njit(cache=True, inline="always")
-def _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e, half_j, half_f, terms, a3, a4,
+def _pair_terms(form, dim, x, diam, pair_lambda, half_i, half_e, half_j, half_f, terms, a3, a4,
                 beta, lam_floor, clip, weighted_dual, update_lambda, figures):
     """The first half of a pass over the half list (``pair_halves``): every pair's part once,
     written to the pair's entry and to its mirror (its entry in the partner's row): lambda,
@@ -165,55 +185,92 @@ def _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e, 
     ``figures`` the gain's and the row's shares. Both entries get the bits that a walk of both
     whole rows would give them. Returns (entries with lambda > 0, the min ratio of
     ``_min_ratio``). Inlined with literal flags where the pass calls it, so that LLVM folds
-    their branches."""
+    their branches.
+
+    A block of PAIR_BLOCK listed pairs at a time, in three loops: the gather (separations,
+    d_ij, lambdas into the scratch's rows), the arithmetic (``_pair_math`` over the rows
+    alone: vector instructions, several square roots and divisions at once; one pair at a
+    time, they queued on the divider and bounded the pass: docs/benchmarks.md, session 42) and
+    the scatter to each pair's two entries. The min ratio is the minimum of each overlapping
+    pair's r2 / d_ij^2, computed for every pair in the arithmetic: ``_min_ratio``'s value,
+    without its loop-carried multiply and test."""
     n_active = 0
     min_ratio2 = 1.0
-    for i in range(n_local):
-        xi0, xi1, xi2 = coordinates(dim, x, i)
-        di = diam[i]
+    work = np.empty((_W_ROWS, PAIR_BLOCK))
+    w_d0, w_d1, w_d2 = work[_W_D], work[_W_D + 1], work[_W_D + 2]
+    w_r2, w_dij, w_lam, w_g = work[_W_R2], work[_W_DIJ], work[_W_LAM], work[_W_G]
+    w_gain, w_row, w_ratio = work[_W_GAIN], work[_W_ROW], work[_W_RATIO]
+    n_half = half_e.shape[0]
+    for k0 in range(0, n_half, PAIR_BLOCK):
+        n_block = min(PAIR_BLOCK, n_half - k0)
         # unsigned indices: numba wraps a signed index around (x[-1]) with a test and the
-        # array's shape, reloaded from the stack for every entry in this register-starved loop
-        for k in range(np.uint64(half_offsets[i]), np.uint64(half_offsets[i + 1])):
+        # array's shape
+        for t in range(n_block):
+            k = k0 + t
+            i = np.uint64(half_i[k])
+            xi0, xi1, xi2 = coordinates(dim, x, i)
+            j = np.uint64(half_j[k])
+            d0, d1, d2, r2 = separation(dim, x, xi0, xi1, xi2, j)
+            w_d0[t] = d0
+            if dim > 1:
+                w_d1[t] = d1
+            if dim > 2:
+                w_d2[t] = d2
+            w_r2[t] = r2
+            w_dij[t] = 0.5 * (diam[i] + diam[j])
+            w_lam[t] = pair_lambda[np.uint64(half_e[k])]
+        for t in range(n_block):
+            lam, g, gain, row, phi, dd = _pair_math(form, w_r2[t], w_dij[t], w_lam[t], a3, a4, beta, lam_floor,
+                                                    clip, weighted_dual, update_lambda)
+            w_lam[t] = lam
+            w_ratio[t] = w_r2[t] / dd if phi > 0.0 else 1.0
+            if figures:
+                w_g[t] = g
+                w_gain[t] = gain
+                w_row[t] = row
+            else:
+                # the force's components (the partner's entry gets the opposite ones: X_j - X_i
+                # = -(X_i - X_j) and g (-d) = -(g d) exactly)
+                w_d0[t] = g * w_d0[t]
+                if dim > 1:
+                    w_d1[t] = g * w_d1[t]
+                if dim > 2:
+                    w_d2[t] = g * w_d2[t]
+        for t in range(n_block):
+            k = k0 + t
             e = np.uint64(half_e[k])
             f = half_f[k]
-            d0, d1, d2, lam, g, gain, row, phi, r2, dd = _pair(
-                form, dim, x, xi0, xi1, xi2, di, np.uint64(half_j[k]), diam, pair_lambda[e], a3, a4, beta,
-                lam_floor, clip, weighted_dual, update_lambda)
-            min_ratio2 = _min_ratio(phi, r2, dd, min_ratio2)
+            lam = w_lam[t]
             both = 1 if f < 0 else 2
             n_active += both if lam > 0.0 else 0
+            ratio2 = w_ratio[t]
+            min_ratio2 = ratio2 if ratio2 < min_ratio2 else min_ratio2
             if update_lambda:
                 pair_lambda[e] = lam
-            # with figures the factor g, the same in both entries; without, the force's
-            # components, the partner's entry the opposite ones (X_j - X_i = -(X_i - X_j) and
-            # g (-d) = -(g d) exactly)
-            t0 = g * d0  # (used without figures only)
-            t1 = g * d1
-            t2 = g * d2
             if figures:
-                terms[0, e] = g
-                terms[dim, e] = gain
-                terms[dim + 1, e] = row
+                terms[0, e] = w_g[t]
+                terms[dim, e] = w_gain[t]
+                terms[dim + 1, e] = w_row[t]
             else:
-                terms[0, e] = t0
+                terms[0, e] = w_d0[t]
                 if dim > 1:
-                    terms[1, e] = t1
+                    terms[1, e] = w_d1[t]
                 if dim > 2:
-                    terms[2, e] = t2
+                    terms[2, e] = w_d2[t]
             if f >= 0:
                 fu = np.uint64(f)
                 if update_lambda:
                     pair_lambda[fu] = lam
                 if figures:
-                    terms[0, fu] = g
-                    terms[dim, fu] = gain
-                    terms[dim + 1, fu] = row
+                    terms[0, fu] = w_g[t]
+                    terms[dim, fu] = w_gain[t]
+                    terms[dim + 1, fu] = w_row[t]
                 else:
-                    terms[0, fu] = -t0
+                    terms[0, fu] = -w_d0[t]
                     if dim > 1:
-                        terms[1, fu] = -t1
+                        terms[1, fu] = -w_d1[t]
                     if dim > 2:
-                        terms[2, fu] = -t2
+                        terms[2, fu] = -w_d2[t]
     return n_active, min_ratio2
 
 
@@ -301,25 +358,25 @@ def _fire_al_step(form, dim, x, x_prev, x_new, n_local, diam, pair_offsets, pair
     # or, without a half list, each sphere's whole row. The flags as literals in the two passes
     # of the fire phase (FIRE's with its dual step, and without: L-BFGS's gradient, FIRE's once
     # c_b has grown): their branches folded
-    half_offsets, half_e, half_j, half_f, terms = pairs
-    halves = half_offsets.shape[0] > 0
+    half_i, half_e, half_j, half_f, terms = pairs
+    halves = half_e.shape[0] > 0
     n_active = 0
     min_ratio2 = 1.0
     if halves:
         if clip and weighted_dual and update_lambda:
-            n_active, min_ratio2 = _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e,
+            n_active, min_ratio2 = _pair_terms(form, dim, x, diam, pair_lambda, half_i, half_e,
                                                half_j, half_f, terms, a3, a4, beta, lam_floor, True, True, True,
                                                True)
         elif clip and weighted_dual and not gradient_pass:
-            n_active, min_ratio2 = _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e,
+            n_active, min_ratio2 = _pair_terms(form, dim, x, diam, pair_lambda, half_i, half_e,
                                                half_j, half_f, terms, a3, a4, beta, lam_floor, True, True, False,
                                                True)
         elif clip and weighted_dual:
-            n_active, min_ratio2 = _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e,
+            n_active, min_ratio2 = _pair_terms(form, dim, x, diam, pair_lambda, half_i, half_e,
                                                half_j, half_f, terms, a3, a4, beta, lam_floor, True, True, False,
                                                False)
         else:
-            n_active, min_ratio2 = _pair_terms(form, dim, x, n_local, diam, pair_lambda, half_offsets, half_e,
+            n_active, min_ratio2 = _pair_terms(form, dim, x, diam, pair_lambda, half_i, half_e,
                                                half_j, half_f, terms, a3, a4, beta, lam_floor, clip, weighted_dual,
                                                update_lambda, not gradient_pass)
     for i in range(n_local):
@@ -439,7 +496,7 @@ _DOC = """One pass of the fire-al step for one form and dimension; see the modul
     and the row are not computed (0 and a3).
     Shapes as ``kernels.multipliers_and_step``; acc int64 (b+N_ACC, exactsum.NBINS+1), added to;
     maxima float64 (N_MAX,), overwritten. Returns the number of row entries with lambda > 0.
-    pairs: (half_offsets, half_e, half_j, half_f, terms), the rows' half list and a terms buffer
+    pairs: (half_i, half_e, half_j, half_f, terms), the rows' half list and a terms buffer
     (b + 2, n_pairs), made with the rows (``pair_work``), or ``WHOLE_ROWS``.
     """
 
@@ -489,47 +546,45 @@ def pair_halves(n_local, pair_offsets, pair_j, pair_lambda, mirror):
 
     mirror int64 (n_pairs,): each entry's mirror, the entry of the partner's row whose partner
     is this entry's sphere, or -1 (``neighbors.build_rows`` or ``neighbors.find_mirrors``).
-    Returns (half_offsets int64 (n_local+1,), half_e int64, half_j int32, half_f int64, each
-    (n_half,)): row i's listed entries are half_e[half_offsets[i]:half_offsets[i+1]] (in row
-    order), with their partners half_j and their mirrors half_f, or -1. An entry is listed
-    unless it is the mirror of one that is: of an entry pair (e of row i, f of row j) the one
-    with i < j is listed, with mirror f; an entry whose partner is a ghost, or whose mirror is
-    missing or holds another lambda (the pair's two entries must hold the same bits: every
-    pass then keeps them so), is listed with mirror -1.
+    Returns (half_i int32, half_e int64, half_j int32, half_f int64, each (n_half,)): the
+    listed entries half_e in row order, their spheres half_i (ascending), partners half_j and
+    mirrors half_f, or -1. An entry is listed unless it is the mirror of one that is: of an
+    entry pair (e of row i, f of row j) the one with i < j is listed, with mirror f; an entry
+    whose partner is a ghost, or whose mirror is missing or holds another lambda (the pair's two
+    entries must hold the same bits: every pass then keeps them so), is listed with mirror -1.
     """
     # every entry is written at the next free place, and kept (k advances) when listed
     n_pairs = pair_offsets[n_local]
-    half_offsets = np.empty(n_local + 1, dtype=np.int64)
+    half_i = np.empty(n_pairs, dtype=np.int32)
     half_e = np.empty(n_pairs, dtype=np.int64)
     half_j = np.empty(n_pairs, dtype=np.int32)
     half_f = np.empty(n_pairs, dtype=np.int64)
-    half_offsets[0] = 0
     k = 0
     for i in range(n_local):
         for e in range(pair_offsets[i], pair_offsets[i + 1]):
             f = mirror[e]
             if f >= 0 and not pair_lambda[f] == pair_lambda[e]:
                 f = -1
+            half_i[k] = i
             half_e[k] = e
             half_j[k] = pair_j[e]
             half_f[k] = f
             k += np.int64(f < 0 or pair_j[e] > i)
-        half_offsets[i + 1] = k
-    return half_offsets, half_e[:k].copy(), half_j[:k].copy(), half_f[:k].copy()
+    return half_i[:k].copy(), half_e[:k].copy(), half_j[:k].copy(), half_f[:k].copy()
 
 
 # the pass walks whole rows, with no half list, when the rows hold more entries than this per
 # sphere (a dense start's first pass: hundreds a sphere; a run's rows hold about 6 in 2D, 8 - 11
-# in 3D): the half list's 20 + 8 (b + 2) bytes an entry would then outgrow the rows' own memory guard
+# in 3D): the half list's 24 + 8 (b + 2) bytes an entry would then outgrow the rows' own memory guard
 HALF_LIST_MAX_ROW = 24
 
 # the ``pairs`` of a pass that walks whole rows (no half list)
-WHOLE_ROWS = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int32),
+WHOLE_ROWS = (np.zeros(0, dtype=np.int32), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int32),
               np.zeros(0, dtype=np.int64), np.zeros((0, 0)))
 
 
 def pair_work(dim, n_local, pair_offsets, pair_j, pair_lambda, mirror, max_row=HALF_LIST_MAX_ROW):
-    """The ``pairs`` argument of a pass over these rows: (half_offsets, half_e, half_j, half_f)
+    """The ``pairs`` argument of a pass over these rows: (half_i, half_e, half_j, half_f)
     of ``pair_halves`` and a terms buffer (dim + 2, n_pairs), from the entries' mirrors as the
     rows' build found them (``neighbors.build_rows``); ``WHOLE_ROWS`` when the rows hold more
     than ``max_row`` entries a sphere, or when the build found no mirrors (mirror None: a dense
