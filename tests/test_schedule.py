@@ -166,8 +166,8 @@ def test_a_jammed_3d_run_quenches_once_w_has_settled():
     assert step == 1 + 2 * schedule.QUENCH_WINDOW, step  # the first mark at 101, equal at 201
     cbs = [sch.s.cb]
     for overlap in (2.5e-3, 1.2e-3, 5.5e-4):  # each under half the last, above the hold (5e-4)
-        nxt = run_until_step(sch, step + 1, overlap, schedule.QUENCH_MAX_INNER + 10)
-        assert nxt is not None and nxt - step == schedule.QUENCH_MAX_INNER, (step, nxt)
+        nxt = run_until_step(sch, step + 1, overlap, sch.quench_max_inner + 10)
+        assert nxt is not None and nxt - step == sch.quench_max_inner == schedule.QUENCH_MAX_INNER, (step, nxt)
         step = nxt
         cbs.append(sch.s.cb)
     assert cbs == [schedule.C_B[3] * schedule.CB_GROW[3], schedule.CB_MAX, schedule.CB_MAX, schedule.CB_MAX]
@@ -203,11 +203,28 @@ def test_a_jammed_2d_run_quenches_from_a_smaller_ball():
     assert step == 1 + 2 * schedule.QUENCH_WINDOW, step
     cbs = [sch.s.cb]
     for overlap in (2.5e-3, 1.2e-3, 5.5e-4):
-        nxt = run_until_step(sch, step + 1, overlap, schedule.QUENCH_MAX_INNER + 10)
-        assert nxt is not None and nxt - step == schedule.QUENCH_MAX_INNER, (step, nxt)
+        nxt = run_until_step(sch, step + 1, overlap, sch.quench_max_inner + 10)
+        assert nxt is not None and nxt - step == sch.quench_max_inner == schedule.QUENCH_MAX_INNER, (step, nxt)
         step = nxt
         cbs.append(sch.s.cb)
     assert cbs == [schedule.C_B[2] * schedule.CB_GROW[2] ** k for k in (1, 2, 3, 4)]
+
+
+@pytest.mark.parametrize("n, dim, wait", [(2000, 2, 200), (20000, 2, 200), (100000, 2, 999), (200000, 2, 1999),
+                                          (200000, 3, 200), (1000000, 3, 200)])
+def test_a_large_2d_quench_waits_longer_between_its_multiplier_steps(n, dim, wait):
+    """The quench's forced multiplier steps come every QUENCH_MAX_INNER (R / QUENCH_RADIUS)^2
+    iterations beyond QUENCH_RADIUS (R the law's radius): 2D above N = 2e4; never in 3D up to
+    N = 1e6 (R = 58 d). The schedule keeps to it, up to MAX_INNER in FIRE's phase."""
+    sch = schedule.FireALSchedule(n, dim, 1.0, "S", overlap_tol=1e-3, jammed=True)
+    radius = schedule.packing_law(n, dim, 1.0, "S")["radius"]
+    assert sch.quench_max_inner == wait == int(schedule.QUENCH_MAX_INNER * max(1.0, radius / schedule.QUENCH_RADIUS) ** 2)
+    sch.observe(figure(sch, iteration=1, max_overlap=0.01))
+    sch.take_pending()
+    step = run_until_step(sch, 2, 0.01, schedule.FIRST_INNER + sch.fall_iterations)
+    assert step == 1 + 2 * schedule.QUENCH_WINDOW, step
+    nxt = run_until_step(sch, step + 1, 2.5e-3, wait + 10)
+    assert nxt is not None and nxt - step == min(wait, schedule.MAX_INNER), (step, nxt, wait)
 
 
 def test_a_jammed_2d_start_between_the_two_balls_explodes_instead():

@@ -166,6 +166,16 @@ QN_DUAL_STEP = {1: 1.0, 2: 0.5, 3: 1.0}
 # residual missed eta), N = 2000 seeds 5 - 12 after 1803 - 2092 against 2228 - 2502
 QUENCH = {1: False, 2: True, 3: True}
 QUENCH_WINDOW, QUENCH_SETTLED, QUENCH_MAX_INNER = 100, 1e-3, 200
+# ... and QUENCH_MAX_INNER (R / QUENCH_RADIUS)^2 beyond QUENCH_RADIUS (R the law's radius, d's),
+# as every forced step's wait at most MAX_INNER (FIRE's inner solves) or QN_MAX_INNER (L-BFGS's):
+# a large packing's inner solve needs longer to relax a multiplier step's change across it (a
+# damped relaxation's time grows like the area). 2D N = 2e5 (R = 242.5 d; 2 ranks, seed 1) with
+# 200 wandered at max overlaps of 0.2 - 0.4 d for 23000 iterations after its quench and jammed
+# after 47934, 4.9% above the certified W; waits of 600, 1200 and this rule's 1999 (FIRE's 600,
+# 1200, 1500, L-BFGS's 500 in each) after 30695, 32242, 35236, 3.9%, 2.0%, 1.2% above. At 2D
+# N = 2e4 (R = 76.7 d) 383 took 7 - 18% more iterations than 200 on seeds 1 - 3
+# (docs/benchmarks.md, session 43). 3D (R = 34 d at N = 2e5) and 2D up to N = 2e4 keep 200
+QUENCH_RADIUS = 76.7
 # the spread ball's radius (in law radii) of a jammed finish: the fall back from SPREAD R at the
 # speed cap VMAX was ~3/4 of a 2D jammed run (N = 2000: iterations ~1800 of 2300). In 2D a ball
 # of 2 R (a fourth of the packing's density) falls in ~2/3 of the time and still separates
@@ -307,6 +317,7 @@ class FireALSchedule:
         self.spread_factor = JAMMED_SPREAD[dim] if jammed else SPREAD
         self.spread_radius = self.spread_factor * law["radius"]
         self.fall_iterations = int(2.0 * max(self.spread_factor - 1.0, 0.0) * law["radius"] / (VMAX * d))
+        self.quench_max_inner = int(QUENCH_MAX_INNER * max(1.0, law["radius"] / (QUENCH_RADIUS * d)) ** 2)
         self.explode_cap = EXPLODE_CAP * law["radius"]
         self.lam_floor = FLOOR * law["lam_bar"]
         # the floor of a row's dual gain: |grad phi|^2 of one pair at distance d/2 (S: d^2; NS: 1)
@@ -370,7 +381,7 @@ class FireALSchedule:
         if s.qn and fig["max_overlap"] > self.overlap_tol:
             wait = QN_MAX_INNER
         if self.quench:
-            wait = min(wait, QUENCH_MAX_INNER if s.dual_steps >= 1 else self._quench_wait(fig))
+            wait = min(wait, self.quench_max_inner if s.dual_steps >= 1 else self._quench_wait(fig))
         stalled = (MAX_INNER > 0 and s.since_dual >= wait
                    and fig["max_overlap"] > self.hold_overlap)
         if not was_dual and s.since_dual >= MIN_INNER and (s.inner_residual <= s.eta or stalled):
