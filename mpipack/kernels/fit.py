@@ -77,9 +77,8 @@ def start_ns(x, n_local, diam, po, pj, pl, wa, wl, beta, mode, scale, pen, floor
 
 
 @njit(cache=True, inline="always")
-def _wall_grad(form, x, i, walls, wall, di):
+def _wall_grad(form, dim, x, i, walls, wall, di):
     """grad_{X_i} phi_iw = -c n_iw as three scalars (c = d_i (S) or 1 (NS))."""
-    dim = x.shape[1]
     x0, x1, x2 = coordinates(dim, x, i)
     s, n0, n1, n2, curv = walls_mod.gap(dim, walls, wall, x0, x1, x2)
     cw = di if form == SMOOTH else 1.0
@@ -108,11 +107,9 @@ def contacts(pair_offsets, n_local, active):
 
 
 @njit(cache=True, inline="always")
-def _grad(form, x, i, j):
+def _grad(form, dim, x, xi0, xi1, xi2, j):
     """grad_{X_i} phi_ij as three scalars: -2 (X_i - X_j) (S) or -(X_i - X_j) / |X_i - X_j|
-    (NS); the coordinates beyond x's dimension are 0."""
-    dim = x.shape[1]
-    xi0, xi1, xi2 = coordinates(dim, x, i)
+    (NS), X_i given as scalars; the coordinates beyond the dimension are 0."""
     g0, g1, g2, r2 = separation(dim, x, xi0, xi1, xi2, j)
     if form == SMOOTH:
         return -2.0 * g0, -2.0 * g1, -2.0 * g2
@@ -136,10 +133,9 @@ def _fista(m, m_prev, g, step, beta):
 
 
 @njit(cache=True, inline="always")
-def _step(form, x, n_local, c_offsets, c_j, m, m_prev, g, walls, diam, wm, wm_prev, wg, wactive,
+def _step(form, dim, x, n_local, c_offsets, c_j, m, m_prev, g, walls, diam, wm, wm_prev, wg, wactive,
           xbar, pot, step, beta, r, acc):
-    dim = x.shape[1]
-    fbuf = exactsum.staging(acc)
+    cols = exactsum.columns(acc)  # sum |r_i|^2, a block of spheres at a time
     xb0 = xbar[0]
     xb1 = xbar[1] if dim > 1 else 0.0
     xb2 = xbar[2] if dim > 2 else 0.0
@@ -157,7 +153,7 @@ def _step(form, x, n_local, c_offsets, c_j, m, m_prev, g, walls, diam, wm, wm_pr
             m_prev[c] = new
             m[c] = y
             if y > 0.0:
-                d0, d1, d2 = _grad(form, x, i, c_j[c])
+                d0, d1, d2 = _grad(form, dim, x, xi0, xi1, xi2, np.uint64(c_j[c]))
                 r0 += y * d0
                 r1 += y * d1
                 r2_ += y * d2
@@ -168,7 +164,7 @@ def _step(form, x, n_local, c_offsets, c_j, m, m_prev, g, walls, diam, wm, wm_pr
             wm_prev[i, wall] = new
             wm[i, wall] = y
             if y > 0.0:
-                d0, d1, d2 = _wall_grad(form, x, i, walls, wall, diam[i])
+                d0, d1, d2 = _wall_grad(form, dim, x, i, walls, wall, diam[i])
                 r0 += y * d0
                 r1 += y * d1
                 r2_ += y * d2
@@ -180,34 +176,25 @@ def _step(form, x, n_local, c_offsets, c_j, m, m_prev, g, walls, diam, wm, wm_pr
         if dim > 2:
             r[i, 2] = r2_
             rr += r2_ * r2_
-        exactsum.add(fbuf, acc, FIT_R2, rr)
-    exactsum.flush(fbuf, acc)
-
-
-@njit(cache=True)
-def step_s(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r, acc):
-    _step(SMOOTH, x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r, acc)
-
-
-@njit(cache=True)
-def step_ns(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r, acc):
-    _step(NONSMOOTH, x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r,
-          acc)
+        exactsum.put(cols, FIT_R2, i, rr)
+        if exactsum.block_ends(i):
+            exactsum.add_block(cols, acc)
+    exactsum.flush_columns(cols, acc, n_local)
 
 
 @njit(cache=True, inline="always")
-def _gradient(form, x, n_local, c_offsets, c_j, m, m_prev, walls, diam, wm, wm_prev, wg, wactive,
+def _gradient(form, dim, x, n_local, c_offsets, c_j, m, m_prev, walls, diam, wm, wm_prev, wg, wactive,
               step, r, g, acc, maxima):
-    dim = x.shape[1]
-    fbuf = exactsum.staging(acc)
+    cols = exactsum.columns(acc)  # the restart test's sum, a block of spheres at a time
     max_row = 0.0
     for i in range(n_local):
         turn = 0.0
         row = 0.0
+        xi0, xi1, xi2 = coordinates(dim, x, i)
         ri0, ri1, ri2 = coordinates(dim, r, i)
         for c in range(c_offsets[i], c_offsets[i + 1]):
-            j = c_j[c]
-            d0, d1, d2 = _grad(form, x, i, j)
+            j = np.uint64(c_j[c])
+            d0, d1, d2 = _grad(form, dim, x, xi0, xi1, xi2, j)
             ge = d0 * (ri0 - r[j, 0])
             row += d0 * d0
             if dim > 1:
@@ -226,7 +213,7 @@ def _gradient(form, x, n_local, c_offsets, c_j, m, m_prev, walls, diam, wm, wm_p
         for wall in range(walls.shape[0]):
             if not wactive[i, wall]:
                 continue
-            d0, d1, d2 = _wall_grad(form, x, i, walls, wall, diam[i])
+            d0, d1, d2 = _wall_grad(form, dim, x, i, walls, wall, diam[i])
             ge = d0 * ri0 + d1 * ri1 + d2 * ri2
             row += d0 * d0 + d1 * d1 + d2 * d2
             wg[i, wall] = ge
@@ -236,22 +223,95 @@ def _gradient(form, x, n_local, c_offsets, c_j, m, m_prev, walls, diam, wm, wm_p
             turn += ge * (new - wm_prev[i, wall])
         if row > max_row:
             max_row = row
-        exactsum.add(fbuf, acc, FIT_TURN, turn)
-    exactsum.flush(fbuf, acc)
+        exactsum.put(cols, FIT_TURN, i, turn)
+        if exactsum.block_ends(i):
+            exactsum.add_block(cols, acc)
+    exactsum.flush_columns(cols, acc, n_local)
     maxima[FIT_ROW] = max_row
 
 
-@njit(cache=True)
-def gradient_s(x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima):
-    _gradient(SMOOTH, x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima)
+# One step and one gradient kernel per form and dimension (the dimension a compile-time constant:
+# a sphere's coordinates in registers, LLVM's dead branches removed), written out because numba
+# caches top-level functions only; error_model "numpy": no zero-division checks (the NS
+# gradient's division is guarded).
+@njit(cache=True, error_model="numpy")
+def step_s1(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r, acc):
+    _step(SMOOTH, 1, x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r,
+          acc)
 
 
-@njit(cache=True)
-def gradient_ns(x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima):
-    _gradient(NONSMOOTH, x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima)
+@njit(cache=True, error_model="numpy")
+def gradient_s1(x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima):
+    _gradient(SMOOTH, 1, x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima)
 
 
-_KERNELS = {"S": (start_s, step_s, gradient_s), "NS": (start_ns, step_ns, gradient_ns)}
+@njit(cache=True, error_model="numpy")
+def step_s2(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r, acc):
+    _step(SMOOTH, 2, x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r,
+          acc)
+
+
+@njit(cache=True, error_model="numpy")
+def gradient_s2(x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima):
+    _gradient(SMOOTH, 2, x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima)
+
+
+@njit(cache=True, error_model="numpy")
+def step_s3(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r, acc):
+    _step(SMOOTH, 3, x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r,
+          acc)
+
+
+@njit(cache=True, error_model="numpy")
+def gradient_s3(x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima):
+    _gradient(SMOOTH, 3, x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima)
+
+
+@njit(cache=True, error_model="numpy")
+def step_ns1(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r, acc):
+    _step(NONSMOOTH, 1, x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r,
+          acc)
+
+
+@njit(cache=True, error_model="numpy")
+def gradient_ns1(x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima):
+    _gradient(NONSMOOTH, 1, x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima)
+
+
+@njit(cache=True, error_model="numpy")
+def step_ns2(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r, acc):
+    _step(NONSMOOTH, 2, x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r,
+          acc)
+
+
+@njit(cache=True, error_model="numpy")
+def gradient_ns2(x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima):
+    _gradient(NONSMOOTH, 2, x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima)
+
+
+@njit(cache=True, error_model="numpy")
+def step_ns3(x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r, acc):
+    _step(NONSMOOTH, 3, x, n_local, co, cj, m, m_prev, g, wa, diam, wm, wm_prev, wg, wact, xbar, pot, step, beta, r,
+          acc)
+
+
+@njit(cache=True, error_model="numpy")
+def gradient_ns3(x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima):
+    _gradient(NONSMOOTH, 3, x, n_local, co, cj, m, m_prev, wa, diam, wm, wm_prev, wg, wact, step, r, g, acc, maxima)
+
+
+_STEP = {("S", 1): step_s1, ("S", 2): step_s2, ("S", 3): step_s3,
+         ("NS", 1): step_ns1, ("NS", 2): step_ns2, ("NS", 3): step_ns3}
+_GRADIENT = {("S", 1): gradient_s1, ("S", 2): gradient_s2, ("S", 3): gradient_s3,
+             ("NS", 1): gradient_ns1, ("NS", 2): gradient_ns2, ("NS", 3): gradient_ns3}
+_START = {"S": start_s, "NS": start_ns}
+
+
+def _by_dimension(kernels, form):
+    """The kernel of ``form`` for x's dimension (x the first argument)."""
+    def call(x, *args):
+        return kernels[form, x.shape[1]](x, *args)
+    return call
 
 
 def fit_kernels(form):
@@ -277,4 +337,4 @@ def fit_kernels(form):
           test of O'Donoghue and Candes); maxima[FIT_ROW] the largest row
           sum_j |grad_i phi_ij|^2 over the local particles.
     """
-    return _KERNELS[form]
+    return _START[form], _by_dimension(_STEP, form), _by_dimension(_GRADIENT, form)

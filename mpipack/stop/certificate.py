@@ -36,8 +36,9 @@ MIN_WINDOW = 1
 # counted as FIT_STEP_COST iterations (two passes over the pairs in contact, a ghost refresh and
 # one allreduce cost 0.88 - 1.09 iterations when the count was set, and since the fit's kernels
 # run over the contacts alone 0.34 of an iteration of the loop at 3D N = 2000, 0.24 at 3D N =
-# 8000, 0.30 there on 2 ranks, 0.43 at 2D N = 32000: the fits now take at most 5 - 9% of a run's
-# time; counting a step as 0.35 iteration certified 3D N = 2000 5.5% sooner in iterations, but
+# 8000, 0.30 there on 2 ranks, 0.43 at 2D N = 32000; about one iteration of a packed state since
+# the passes became cheaper and the fit's kernels were compiled per dimension, docs/benchmarks.md
+# session 44; counting a step as 0.35 iteration certified 3D N = 2000 5.5% sooner in iterations, but
 # where the extra fits failed they cost time for nothing: docs/research/convergence.md, section 3p), and
 # a check fits only when the run's multipliers leave the KKT residual within FIT_GAIN times its
 # tolerance (the fit removed at most 20x of it where it certified: docs/research/convergence.md, section
