@@ -6,6 +6,7 @@ more ranks than cores. Every subprocess has a timeout, so a hang fails instead o
 """
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -27,6 +28,15 @@ TIMEOUT = 300
 # the environment of every subprocess: the one `mpipack suite` builds for its runs (root,
 # oversubscription, yield when idle, this checkout first on PYTHONPATH)
 from mpipack.parallel.launcher import mpi_env
+
+# mpirun ends a job any rank of which exits non-zero (2, 3, 4, 5: most test runs) the way it
+# ends one on SIGTERM: it waits odls_base_sigkill_timeout seconds, signals the ranks (gone by
+# then), waits as long again -- 10.4 s with tools/env.sh's 5 s for a rank that exits 4 at once,
+# 2.4 s with Open MPI's own 1 s, 0.5 s for exit 0. The tests' small runs take Open MPI's 1 s;
+# the tests of a signal to mpirun, and the Slurm jobs, keep the users' 5 s (SIGNAL_GRACE).
+SIGKILL_TIMEOUT = "OMPI_MCA_odls_base_sigkill_timeout"
+SIGNAL_GRACE = "5"
+os.environ[SIGKILL_TIMEOUT] = "1"
 
 
 def mpirun(n, args, cwd, timeout=TIMEOUT):

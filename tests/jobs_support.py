@@ -55,6 +55,7 @@ class Cluster:
         self.folder = Path(folder)
         self.conf = self.folder / "slurm.conf"
         self.env = {k: v for k, v in os.environ.items() if not k.startswith(("MPIPACK_", "SLURM_", "SBATCH_"))}
+        self.env.pop("OMPI_MCA_odls_base_sigkill_timeout", None)  # the jobs' tools/env.sh sets a user's
         # the jobs import this checkout's package and find jobs/lib.sh and tools/env.sh here
         self.env.update(SLURM_CONF=str(self.conf), PYTHONPATH=str(REPO), MPIPACK_HOME=str(REPO),
                         SLURM_TEST_PORT=str(free_port_pair()))

@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import assert_bitwise_equal, describe, mpi_env, mpipack_run
+from conftest import SIGKILL_TIMEOUT, SIGNAL_GRACE, assert_bitwise_equal, describe, mpi_env, mpipack_run
 
 FIXED = ["stop.rule=eps", "stop.eps=0"]
 CASES = {
@@ -99,7 +99,8 @@ def long_run(P, out, sets=()):
             "--quiet", "--out", str(out), "--set", "n=500", "--set", "stop.max_iter=100000000"]
     for s in list(FIXED) + list(sets):
         args += ["--set", s]
-    return subprocess.Popen(args, cwd=str(out.parent), env=mpi_env(), stdout=subprocess.PIPE,
+    env = dict(mpi_env(), **{SIGKILL_TIMEOUT: SIGNAL_GRACE})  # a user's grace (tools/env.sh)
+    return subprocess.Popen(args, cwd=str(out.parent), env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
 
 
