@@ -93,7 +93,7 @@ def test_a_dual_step_of_gain_zero_changes_no_bit(dim, form):
             mirror = neighbors.find_mirrors(n, gid, offsets, pair_j)
             pairs = kernels_fire.pair_work(dim, n, offsets, pair_j, lam, mirror, max_row=math.inf)
             active = kern(x, x_prev, x_new, n, diam, offsets, pair_j, lam, pairs, *no_walls(n), xbar, CENTRE, 1.2, -0.2,
-                          0.02, 0.08, 0.0, 0.7, True, weighted, 0.05, update, acc, maxima)
+                          0.02, 0.08, 0.0, 0.7, True, weighted, 0.05, update, acc, maxima, False)
             out.append((x_new, lam, acc, maxima, active))
     # the old arithmetic of the dual step with beta = 0, in numpy: max(0, lam + 0 * w * phi)
     assert np.array_equal(np.maximum(0.0, lam0 + 0.0 * lam0), lam0)

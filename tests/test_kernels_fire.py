@@ -100,7 +100,7 @@ def test_fire_kernel_matches_reference(dim, form, case, walk):
     n_active = kern(x, x_prev, x_new, n, diam, offsets, pair_j, pair_lambda, pairs, *no_walls(n), xbar, CENTRE,
                     p["a1"], p["a2"],
                     p["a3"], p["a4"], p["beta"], p["floor"], p["clip"], p["weighted"], p["vmax"],
-                    True, acc, maxima)
+                    True, acc, maxima, False)
     assert np.allclose(x_new, x_ref, rtol=1e-11, atol=1e-12), np.abs(x_new - x_ref).max()
     assert np.allclose(pair_lambda, lam_ref[owner, pair_j], rtol=1e-12, atol=1e-12)
     assert n_active == np.count_nonzero(lam_ref)
@@ -145,7 +145,7 @@ def test_daha_mode_is_the_paper_kernel(form):
             pairs = half_list(dim, n, np.arange(n, dtype=np.int64), offsets, pair_j, lam)
             kernels_fire.fire_al_step(form, dim)(x, x_prev, x_new, n, diam, offsets, pair_j, lam, pairs,
                                                  *no_walls(n), xbar, CENTRE,
-                                                 a1, a2, a3, a4, 1.3, 0.0, False, False, 0.0, True, acc, mx)
+                                                 a1, a2, a3, a4, 1.3, 0.0, False, False, 0.0, True, acc, mx, False)
         out[name] = (x_new, lam)
     assert np.allclose(out["paper"][0], out["fire"][0], rtol=1e-13, atol=1e-13)
     assert np.array_equal(out["paper"][1], out["fire"][1])
@@ -170,7 +170,7 @@ def test_kkt_point_is_a_fixed_point():
                                           CENTRE,
                                           p["a1"], p["a2"],
                                           p["a3"], p["a4"], p["beta"], p["floor"], p["clip"], p["weighted"],
-                                          p["vmax"], True, acc, mx)
+                                          p["vmax"], True, acc, mx, False)
         assert np.array_equal(x_new, x) and np.array_equal(lam, np.full(2, lam_star)), p
 
 
@@ -277,7 +277,7 @@ def test_each_pair_once_gives_the_bits_of_both_rows(dim, form, case):
             maxima = np.zeros(kernels_fire.N_MAX)
             active = kern(x, x_prev, x_new, n_local, diam, offsets, pair_j, lam, pairs, *no_walls(n_local), xbar,
                           CENTRE, p["a1"], p["a2"], p["a3"], p["a4"], p["beta"], p["floor"], p["clip"],
-                          p["weighted"], p["vmax"], True, acc, maxima)
+                          p["weighted"], p["vmax"], True, acc, maxima, False)
             out.append((x_new[:n_local], lam, acc, maxima, active))
         assert out[0][1].size > 0 and np.count_nonzero(out[0][1]) > 0
         for other in out[1:]:
