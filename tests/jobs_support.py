@@ -12,6 +12,8 @@ import subprocess
 import time
 from pathlib import Path
 
+from conftest import SIGKILL_TIMEOUT
+
 REPO = Path(__file__).resolve().parents[1]
 JOBS = REPO / "jobs"
 CLUSTER_SH = REPO / "tools" / "slurm" / "cluster.sh"
@@ -55,7 +57,7 @@ class Cluster:
         self.folder = Path(folder)
         self.conf = self.folder / "slurm.conf"
         self.env = {k: v for k, v in os.environ.items() if not k.startswith(("MPIPACK_", "SLURM_", "SBATCH_"))}
-        self.env.pop("OMPI_MCA_odls_base_sigkill_timeout", None)  # the jobs' tools/env.sh sets a user's
+        self.env.pop(SIGKILL_TIMEOUT, None)  # the jobs' tools/env.sh sets a user's grace
         # the jobs import this checkout's package and find jobs/lib.sh and tools/env.sh here
         self.env.update(SLURM_CONF=str(self.conf), PYTHONPATH=str(REPO), MPIPACK_HOME=str(REPO),
                         SLURM_TEST_PORT=str(free_port_pair()))

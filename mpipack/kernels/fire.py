@@ -491,7 +491,7 @@ _DOC = """One pass of the fire-al step for one form and dimension; see the modul
     (``kernels.potential``: grad W is X - xbar, or the weights under gravity, whose W / g is then
     summed into row b + ACC_WPOT of acc, in every pass),
     a1, a2, a3, a4, beta, lam_floor, clip, weighted_dual, vmax, update_lambda, acc, maxima,
-    gradient_pass=False). gradient_pass True, L-BFGS's gradient pass (a1 = 1, a2 = 0): X^{n-1}
+    gradient_pass). gradient_pass True, L-BFGS's gradient pass (a1 = 1, a2 = 0): X^{n-1}
     is not read (x_prev may be x), of the exact sums only |X^n|^2, and of the maxima the gain
     and the row are not computed (0 and a3).
     Shapes as ``kernels.multipliers_and_step``; acc int64 (b+N_ACC, exactsum.NBINS+1), added to;
@@ -504,32 +504,32 @@ _DOC = """One pass of the fire-al step for one form and dimension; see the modul
 # error_model "numpy": no zero-division checks in the pair loop (every divisor is a diameter
 # or a guarded distance); the results are the same bits
 @njit(cache=True, error_model="numpy")
-def fire_s1(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad=False):
+def fire_s1(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad):
     return _fire_al_step(SMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_s2(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad=False):
+def fire_s2(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad):
     return _fire_al_step(SMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_s3(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad=False):
+def fire_s3(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad):
     return _fire_al_step(SMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns1(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad=False):
+def fire_ns1(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad):
     return _fire_al_step(NONSMOOTH, 1, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns2(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad=False):
+def fire_ns2(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad):
     return _fire_al_step(NONSMOOTH, 2, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad)
 
 
 @njit(cache=True, error_model="numpy")
-def fire_ns3(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad=False):
+def fire_ns3(x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad):
     return _fire_al_step(NONSMOOTH, 3, x, xp, xn, n, diam, po, pj, pl, pairs, wa, wl, xbar, pot, a1, a2, a3, a4, beta, fl, clip, wd, vmax, upd, acc, mx, grad)
 
 
