@@ -352,7 +352,7 @@ def run(args):
                "energy_rel_error": abs(e - W) / abs(W), "samples": rows}
         if rank0:
             print(json.dumps(out))
-        sim.lmp.close()
+        sim.lmp.finalize()
         return 0 if worst < 1e-5 and out["energy_rel_error"] < 1e-10 else 1
 
     dref = float(np.median(diam))
@@ -471,7 +471,10 @@ def run(args):
             with open(args.json, "w") as f:
                 f.write(text + "\n")
         print(text, flush=True)
-    sim.lmp.close()
+    # MPI_Finalize on every rank, so that none leaves while another still writes: MPICH's
+    # launcher ends the whole job when a rank exits without it (a 2-rank damped run's rank 1
+    # left first and rank 0 died in the middle of its trace, the JSON never written, exit 0)
+    sim.lmp.finalize()
     if rank0 and not args.keep_log:
         try:
             os.remove(log)
@@ -590,7 +593,10 @@ def run_single_stage(sim, args, x0, diam, K, log):
             with open(args.json, "w") as f:
                 f.write(text + "\n")
         print(text, flush=True)
-    sim.lmp.close()
+    # MPI_Finalize on every rank, so that none leaves while another still writes: MPICH's
+    # launcher ends the whole job when a rank exits without it (a 2-rank damped run's rank 1
+    # left first and rank 0 died in the middle of its trace, the JSON never written, exit 0)
+    sim.lmp.finalize()
     if rank0 and not args.keep_log:
         try:
             os.remove(log)
