@@ -91,12 +91,13 @@ MAX_SCENE_BYTES = 1024 * 1024
 # the Verlet skin, in largest diameters: the rows hold every pair within d + skin, and their
 # cost grows like (1 + skin)^b (neighbor.skin = 1e6 was accepted and 20x slower)
 MAX_SKIN = 2.0
-# neighbor.skin "auto": SKIN_AUTO, and SKIN_AUTO_FIRE_AL_2D as the adaptive skin's ceiling of a
-# 2D fire-al run, whose pass skips the shell's entries cheaply (its rule's constant is larger:
-# ``FireAL.skin_cost``): 2D N = 2000 and 2e4 jammed runs 5 - 12% sooner on 1 and 2 ranks, a
-# certified N = 2000 run 8% (docs/benchmarks.md, "A 2D jammed finish sooner than the quench");
-# a fixed DAHA's pass, which reads every entry, 11% slower with it
-SKIN_AUTO, SKIN_AUTO_FIRE_AL_2D = 0.3, 0.8
+# neighbor.skin "auto": SKIN_AUTO, and SKIN_AUTO_FIRE_AL_2D / _3D as the adaptive skin's ceiling
+# of a 2D / 3D fire-al run, whose pass skips the shell's entries cheaply (its rule's constant is
+# larger: ``FireAL.skin_cost``): 2D N = 2000 and 2e4 jammed runs 5 - 12% sooner on 1 and 2
+# ranks, a certified N = 2000 run 8% (docs/benchmarks.md, "A 2D jammed finish sooner than the
+# quench"); 3D certified runs 4 - 8% sooner (session 47, "A wider adaptive skin in 3D"); a
+# fixed DAHA's pass, which reads every entry, 11% slower with it
+SKIN_AUTO, SKIN_AUTO_FIRE_AL_2D, SKIN_AUTO_FIRE_AL_3D = 0.3, 0.8, 0.6
 
 
 def _read(source):
@@ -659,8 +660,9 @@ def validate(scene, n_given=True):
         raise SceneError(f"key 'neighbor.adaptive_skin' must be true or false, "
                          f"got {scene['neighbor']['adaptive_skin']!r}")
     if scene["neighbor"]["skin"] == "auto":
-        fire_al_2d = scene["dim"] == 2 and m["schedule"] == "fire-al" and scene["neighbor"]["adaptive_skin"]
-        scene["neighbor"]["skin"] = SKIN_AUTO_FIRE_AL_2D if fire_al_2d else SKIN_AUTO
+        fire_al = m["schedule"] == "fire-al" and scene["neighbor"]["adaptive_skin"]
+        scene["neighbor"]["skin"] = {2: SKIN_AUTO_FIRE_AL_2D, 3: SKIN_AUTO_FIRE_AL_3D}.get(
+            scene["dim"], SKIN_AUTO) if fire_al else SKIN_AUTO
     elif isinstance(scene["neighbor"]["skin"], str):
         raise SceneError(f"key 'neighbor.skin' must be a number of largest diameters or \"auto\", "
                          f"got {scene['neighbor']['skin']!r}")

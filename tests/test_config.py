@@ -46,20 +46,21 @@ def test_scene_is_frozen():
 
 @pytest.mark.parametrize("sets,skin", [
     ([], config.SKIN_AUTO_FIRE_AL_2D),                               # 2D fire-al, adaptive
-    (["dim=3"], config.SKIN_AUTO),
+    (["dim=3"], config.SKIN_AUTO_FIRE_AL_3D),                        # 3D fire-al, adaptive
+    (["dim=3", "neighbor.adaptive_skin=false"], config.SKIN_AUTO),
     (["dim=1"], config.SKIN_AUTO),
     (["neighbor.adaptive_skin=false"], config.SKIN_AUTO),            # a fixed skin stays 0.3
     (["method.alpha=0.01"], config.SKIN_AUTO),                       # the fixed DAHA
     (["method.name=nap"], config.SKIN_AUTO),
     (["neighbor.skin=0.45"], 0.45),                                  # a value is the value
-    (['neighbor.skin="auto"', "dim=3"], config.SKIN_AUTO),
+    (['neighbor.skin="auto"', "dim=3"], config.SKIN_AUTO_FIRE_AL_3D),
 ])
-def test_the_auto_skin_is_wider_only_for_2d_fire_al(sets, skin):
+def test_the_auto_skin_is_wider_only_for_fire_al(sets, skin):
     """neighbor.skin "auto" resolves to a number in the resolved scene: 0.8 for a 2D run of
-    the fire-al schedule under the adaptive skin, 0.3 otherwise."""
+    the fire-al schedule under the adaptive skin, 0.6 for a 3D one, 0.3 otherwise."""
     s = config.load("default", sets)
     assert s.neighbor.skin == skin and isinstance(s.neighbor.skin, float)
-    assert config.SKIN_AUTO == 0.3 and config.SKIN_AUTO_FIRE_AL_2D == 0.8
+    assert (config.SKIN_AUTO, config.SKIN_AUTO_FIRE_AL_2D, config.SKIN_AUTO_FIRE_AL_3D) == (0.3, 0.8, 0.6)
 
 
 def test_overrides_and_seed():

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from conftest import assert_bitwise_equal, describe
+from mpipack import config
 from mpipack.engine import initial as init, rebuild
 
 
@@ -21,23 +22,29 @@ def test_next_skin_grows_with_the_speed_within_its_bounds():
 
 @pytest.mark.parametrize("ranks", [1, 2, 3])
 def test_an_adaptive_skin_changes_no_bit_and_adapts(run_mpipack, ranks):
-    """A 3D fire-al run to its certificate: the same bits with the skin fixed at 0.3 d and
-    chosen per build, on 1, 2 and 3 ranks; the adaptive run's builds went down to the smallest
-    skin once the packing had settled (and so were more frequent)."""
+    """A 3D fire-al run to its certificate: the same bits with the skin fixed at 0.3 d, chosen
+    per build below 0.3 d, and chosen per build below the "auto" ceiling (0.6 d in 3D), on 1,
+    2 and 3 ranks; the adaptive run's builds went down to the smallest skin once the packing
+    had settled (and so were more frequent), the auto ceiling's went above 0.3 d in the fall."""
     sets = ["dim=3", "n=200"]
     runs = {}
-    for adaptive in ("false", "true"):
-        proc, summary, dump = run_mpipack(ranks, None, sets + [f"neighbor.adaptive_skin={adaptive}"],
-                                          dump=True, extra=["--seed", "2"], timeout=240)
+    for name, more in (("fixed", ["neighbor.adaptive_skin=false", "neighbor.skin=0.3"]),
+                       ("adaptive", ["neighbor.skin=0.3"]), ("auto", [])):
+        proc, summary, dump = run_mpipack(ranks, None, sets + more, dump=True, extra=["--seed", "2"],
+                                          timeout=240)
         assert proc.returncode == 0 and dump is not None, describe(proc)
-        runs[adaptive] = (summary, dump)
-    fixed, adaptive = runs["false"], runs["true"]
+        runs[name] = (summary, dump)
+    fixed, adaptive, auto = runs["fixed"], runs["adaptive"], runs["auto"]
     assert_bitwise_equal(fixed[1], adaptive[1], f"adaptive skin on {ranks} ranks")
-    assert fixed[0]["iterations"] == adaptive[0]["iterations"]
+    assert_bitwise_equal(fixed[1], auto[1], f"adaptive skin, auto ceiling, on {ranks} ranks")
+    assert fixed[0]["iterations"] == adaptive[0]["iterations"] == auto[0]["iterations"]
     assert fixed[0]["skin_range"] == [0.3, 0.3]
     lo, hi = adaptive[0]["skin_range"]
     assert lo == pytest.approx(rebuild.SKIN_MIN) and hi == 0.3
     assert adaptive[0]["rebuilds"] > fixed[0]["rebuilds"]
+    lo, hi = auto[0]["skin_range"]
+    assert lo == pytest.approx(rebuild.SKIN_MIN) and 0.3 < hi <= config.SKIN_AUTO_FIRE_AL_3D
+    assert auto[0]["rebuilds"] < adaptive[0]["rebuilds"]
 
 
 def test_nested_methods_keep_their_skin(run_mpipack):

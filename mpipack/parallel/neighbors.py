@@ -233,6 +233,11 @@ def _cell_runs(b, key, dims, dense, cell_start, skeys, offs, forward, coord, run
     return n_runs
 
 
+# a row of at most this many entries finds a history partner's place by counting
+# (``_merge_history``), a longer one by walking from the previous partner's
+_COUNT_ROW = 32
+
+
 @njit(cache=True)
 def _merge_history(i, cnt, row_g, row_j, row_l, row_t, hist_offsets, hist_gid, hist_lambda, sgid,
                    gorder, missing):
@@ -252,8 +257,16 @@ def _merge_history(i, cnt, row_g, row_j, row_l, row_t, hist_offsets, hist_gid, h
         if g < g_prev:  # not in gid order (a history read from elsewhere): search afresh
             q = 0
         g_prev = g
-        while q < cnt and row_g[q] < g:
-            q += 1
+        if cnt <= _COUNT_ROW:
+            # g's place in the sorted row: the number of smaller gids, counted without a
+            # branch (the walk below stops at an unpredictable entry: a mispredicted exit for
+            # every history partner)
+            q = 0
+            for c in range(cnt):
+                q += np.int64(row_g[c] < g)
+        else:
+            while q < cnt and row_g[q] < g:
+                q += 1
         if q < cnt and row_g[q] == g:  # a candidate (or a repeated partner): the larger lambda
             if hist_lambda[e] > row_l[q]:
                 row_l[q] = hist_lambda[e]
