@@ -95,7 +95,7 @@ MAX_SKIN = 2.0
 # of a 2D / 3D fire-al run, whose pass skips the shell's entries cheaply (its rule's constant is
 # larger: ``FireAL.skin_cost``): 2D N = 2000 and 2e4 jammed runs 5 - 12% sooner on 1 and 2
 # ranks, a certified N = 2000 run 8% (docs/benchmarks.md, "A 2D jammed finish sooner than the
-# quench"); 3D certified runs 4 - 8% sooner (session 47, "A wider adaptive skin in 3D"); a
+# quench"); 3D certified runs 3 - 8% sooner (session 47, "A wider adaptive skin in 3D"); a
 # fixed DAHA's pass, which reads every entry, 11% slower with it
 SKIN_AUTO, SKIN_AUTO_FIRE_AL_2D, SKIN_AUTO_FIRE_AL_3D = 0.3, 0.8, 0.6
 

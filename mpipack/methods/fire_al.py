@@ -44,7 +44,7 @@ class FireAL(Method):
         # sphere's shell holds fewer of them per unit of skin than a 3D one's: 25 in 2D (with the
         # ceiling config.SKIN_AUTO_FIRE_AL_2D: the skin ~0.7 d at the speed cap, rebuilds 2.2x
         # fewer, 2D N = 2000 and 2e4 jammed runs 5 - 12% sooner), 15 in 3D (ceiling
-        # SKIN_AUTO_FIRE_AL_3D, rebuilds 1.8x fewer, certified runs 4 - 8% sooner);
+        # SKIN_AUTO_FIRE_AL_3D, rebuilds 1.8x fewer, certified runs 3 - 8% sooner);
         # rebuild.SKIN_COST in 1D
         self.skin_cost = {2: 25.0, 3: 15.0}.get(scene.dim)
         self.coeffs = FireALSchedule.NO_STEP

@@ -593,10 +593,7 @@ def run_single_stage(sim, args, x0, diam, K, log):
             with open(args.json, "w") as f:
                 f.write(text + "\n")
         print(text, flush=True)
-    # MPI_Finalize on every rank, so that none leaves while another still writes: MPICH's
-    # launcher ends the whole job when a rank exits without it (a 2-rank damped run's rank 1
-    # left first and rank 0 died in the middle of its trace, the JSON never written, exit 0)
-    sim.lmp.finalize()
+    sim.lmp.finalize()  # on every rank (see run)
     if rank0 and not args.keep_log:
         try:
             os.remove(log)
